@@ -1,0 +1,1 @@
+"""The volumesh gateway (FastAPI) and the command line."""

@@ -1,0 +1,177 @@
+"""POST /captures (upload), GET /captures, GET /captures/{id}.
+
+An upload is streamed to disk and hashed, checked at zip level here, stored (once per content),
+then read whole by a worker (``volumesh.validate_capture`` on the ``validate`` queue) while the
+request waits: the client learns in the same response whether the capture is usable. A
+rejected capture is deleted again, so nothing half-valid is ever kept.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import time
+from datetime import UTC, datetime
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Path, Query, Request, Response
+from sqlalchemy import func, select
+from sqlalchemy.exc import IntegrityError
+from starlette.concurrency import run_in_threadpool
+
+from app.api.deps import ApiKeyDep, GatewayDep, ReadAccessDep, SessionDep
+from app.core.context import Gateway
+from app.core.problems import ProblemError
+from app.core.uploads import ReceivedUpload, receive_upload
+from app.core.zipcheck import ZipLimits, check_zip
+from app.schemas import API_PREFIX, ID_PATTERN, CapturePage, CapturePublic
+from workers.celery_app import QUEUE_VALIDATE, TASK_VALIDATE
+from workers.models import Capture, utcnow
+
+router = APIRouter(prefix="/captures", tags=["captures"])
+
+_POLL_S = 0.05
+_UPLOAD_BODY: dict[str, Any] = {
+    "requestBody": {
+        "required": True,
+        "description": "A capture zip in format v1 (CAPTURE_FORMAT.md): the raw body, or a "
+                       "multipart form with the zip in the field `file`.",
+        "content": {
+            "application/zip": {"schema": {"type": "string", "format": "binary"}},
+            "multipart/form-data": {"schema": {
+                "type": "object", "required": ["file"],
+                "properties": {"file": {"type": "string", "format": "binary"}}}},
+        },
+    },
+}
+
+
+def _limits(gateway: Gateway) -> ZipLimits:
+    s = gateway.settings
+    return ZipLimits(max_files=s.max_capture_files, max_unpacked_bytes=s.max_unpacked_bytes,
+                     max_compression_ratio=s.max_compression_ratio)
+
+
+def _register(gateway: Gateway, upload: ReceivedUpload) -> tuple[str, bool]:
+    """Store the upload once per content; returns (capture id, whether it must be validated)."""
+    capture_id = upload.sha256[:32]
+    with gateway.sessions() as session:
+        existing = session.get(Capture, capture_id)
+        if existing is not None and existing.state != "rejected":
+            stale = (existing.state == "validating" and (utcnow() - _aware(existing.created_at))
+                     .total_seconds() > gateway.settings.validation_timeout_s)
+            return capture_id, stale
+        if existing is not None:  # rejected by an earlier reader: read it again
+            session.delete(existing)
+            session.commit()
+    key = f"captures/{upload.sha256}.zip"
+    gateway.storage.put_file(key, upload.path, move=True)
+    with gateway.sessions() as session:
+        session.add(Capture(id=capture_id, sha256=upload.sha256, size_bytes=upload.size_bytes,
+                            storage_key=key, state="validating"))
+        try:
+            session.commit()
+        except IntegrityError:  # the same content arrived twice at once: the other one won
+            return capture_id, False
+    return capture_id, True
+
+
+def _aware(value: datetime) -> datetime:
+    # SQLite hands back naive datetimes; they were written in UTC.
+    return value.replace(tzinfo=UTC) if value.tzinfo is None else value
+
+
+def _state(gateway: Gateway, capture_id: str) -> Capture | None:
+    with gateway.sessions() as session:
+        return session.get(Capture, capture_id)
+
+
+def _forget(gateway: Gateway, capture_id: str, state: str = "rejected") -> None:
+    """Delete a capture in ``state`` (rejected, or never queued for validation): row and zip."""
+    with gateway.sessions() as session:
+        row = session.get(Capture, capture_id)
+        if row is None or row.state != state:
+            return
+        key = row.storage_key
+        session.delete(row)
+        session.commit()
+    with contextlib.suppress(FileNotFoundError):
+        gateway.storage.delete(key)
+
+
+async def _await_validation(gateway: Gateway, capture_id: str) -> Capture:
+    deadline = time.monotonic() + gateway.settings.validation_timeout_s
+    while True:
+        row = await run_in_threadpool(_state, gateway, capture_id)
+        if row is None:
+            raise ProblemError(409, "The capture was removed while it was being validated; "
+                               "upload it again.")
+        if row.state == "ready":
+            return row
+        if row.state == "rejected":
+            await run_in_threadpool(_forget, gateway, capture_id)
+            raise ProblemError(422, f"The capture is not valid: {row.error}",
+                               kind="invalid-capture")
+        if time.monotonic() > deadline:
+            raise ProblemError(
+                503, f"No worker validated the capture within "
+                f"{gateway.settings.validation_timeout_s:.0f} s (are workers running on the "
+                f"'{QUEUE_VALIDATE}' queue?); upload it again later.",
+                kind="validation-timeout", headers={"Retry-After": "30"})
+        await asyncio.sleep(_POLL_S)
+
+
+@router.post("", status_code=201, response_model=CapturePublic, openapi_extra=_UPLOAD_BODY,
+             summary="Upload a capture zip",
+             responses={400: {}, 401: {}, 413: {}, 415: {}, 422: {}, 503: {}})
+async def upload_capture(request: Request, response: Response, gateway: GatewayDep,
+                         _key: ApiKeyDep) -> CapturePublic:
+    """Stores the capture (once per content) after a worker has read it whole.
+
+    Uploading identical bytes again returns the same capture (201, header
+    `Volumesh-Deduplicated: true`).
+    """
+    settings = gateway.settings
+    upload = await receive_upload(request, settings.tmp_dir, settings.max_upload_bytes)
+    try:
+        await run_in_threadpool(check_zip, upload.path, _limits(gateway))
+        capture_id, needs_task = await run_in_threadpool(_register, gateway, upload)
+    finally:
+        upload.path.unlink(missing_ok=True)
+    if needs_task:
+        try:
+            await run_in_threadpool(gateway.send_task, TASK_VALIDATE, [capture_id],
+                                    QUEUE_VALIDATE)
+        except Exception:
+            # Not queued, so never validated: do not keep it half-accepted.
+            await run_in_threadpool(_forget, gateway, capture_id, "validating")
+            raise
+    else:
+        response.headers["Volumesh-Deduplicated"] = "true"
+    row = await _await_validation(gateway, capture_id)
+    response.headers["Location"] = f"{API_PREFIX}/captures/{row.id}"
+    return CapturePublic.of(row)
+
+
+CaptureId = Annotated[str, Path(pattern=ID_PATTERN, description="A capture id.")]
+
+
+@router.get("/{capture_id}", response_model=CapturePublic, responses={404: {}})
+def get_capture(capture_id: CaptureId, session: SessionDep,
+                _read: ReadAccessDep) -> CapturePublic:
+    row = session.get(Capture, capture_id)
+    if row is None or row.state == "rejected":
+        raise ProblemError(404, f"There is no capture {capture_id}.", kind="not-found")
+    return CapturePublic.of(row)
+
+
+@router.get("", response_model=CapturePage)
+def list_captures(session: SessionDep, _read: ReadAccessDep,
+                  limit: Annotated[int, Query(ge=1, le=100)] = 20,
+                  offset: Annotated[int, Query(ge=0, le=1_000_000)] = 0) -> CapturePage:
+    ready = Capture.state == "ready"
+    total = session.scalar(select(func.count()).select_from(Capture).where(ready)) or 0
+    rows = session.scalars(select(Capture).where(ready).order_by(Capture.created_at.desc())
+                           .limit(limit).offset(offset))
+    return CapturePage(items=[CapturePublic.of(r) for r in rows], total=total, limit=limit,
+                       offset=offset)

@@ -1,0 +1,183 @@
+"""POST /jobs, GET /jobs, GET /jobs/{id}, DELETE /jobs/{id}, GET /jobs/{id}/events."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import AsyncIterator
+from typing import Annotated
+
+from fastapi import APIRouter, Path, Query, Request, Response
+from fastapi.responses import StreamingResponse
+from sqlalchemy import bindparam, func, select
+from starlette.concurrency import run_in_threadpool
+
+from app.api.deps import (
+    ApiKeyDep,
+    BearerDep,
+    GatewayDep,
+    ReadAccessDep,
+    SessionDep,
+    read_access,
+)
+from app.core.context import Gateway
+from app.core.problems import ProblemError
+from app.schemas import API_PREFIX, ID_PATTERN, JobCreate, JobPage, JobPublic, JobState
+from workers.celery_app import QUEUE_CPU, TASK_STAGE
+from workers.models import TERMINAL_STATES, Capture, Job, new_id, utcnow
+
+router = APIRouter(prefix="/jobs", tags=["jobs"])
+
+JobId = Annotated[str, Path(pattern=ID_PATTERN, description="A job id.")]
+EVENT_POLL_S = 0.25
+EVENT_KEEPALIVE_S = 15.0
+
+
+def _not_found(job_id: str) -> ProblemError:
+    return ProblemError(404, f"There is no job {job_id}.", kind="not-found")
+
+
+def _create(gateway: Gateway, body: JobCreate) -> Job:
+    with gateway.sessions() as session:
+        capture = session.get(Capture, body.capture_id)
+        if capture is None or capture.state == "rejected":
+            raise ProblemError(404, f"There is no capture {body.capture_id}; upload it with "
+                               "POST /api/v1/captures first.", kind="not-found")
+        if capture.state != "ready":
+            raise ProblemError(409, f"Capture {body.capture_id} is still being validated; "
+                               "retry when its upload has returned.", kind="capture-not-ready")
+        job = Job(id=new_id(), capture_id=capture.id, options=body.options(), stages=[],
+                  stage_timings={})
+        session.add(job)
+        session.commit()
+    try:
+        task_id = gateway.send_task(TASK_STAGE, [job.id, 0], QUEUE_CPU)
+    except Exception:
+        _forget_job(gateway, job.id)  # never queued: leave no job that would wait forever
+        raise
+    with gateway.sessions() as session:
+        row = session.get(Job, job.id)
+        assert row is not None
+        if row.task_id is None:  # the worker may already have recorded itself
+            row.task_id = task_id
+            session.commit()
+        return row
+
+
+def _forget_job(gateway: Gateway, job_id: str) -> None:
+    with gateway.sessions() as session:
+        row = session.get(Job, job_id)
+        if row is not None:
+            session.delete(row)
+            session.commit()
+
+
+@router.post("", status_code=202, response_model=JobPublic, summary="Queue a reconstruction",
+             responses={401: {}, 404: {}, 409: {}, 422: {}, 503: {}})
+def create_job(body: JobCreate, response: Response, gateway: GatewayDep,
+               _key: ApiKeyDep) -> JobPublic:
+    job = _create(gateway, body)
+    response.headers["Location"] = f"{API_PREFIX}/jobs/{job.id}"
+    return JobPublic.of(job)
+
+
+@router.get("", response_model=JobPage, summary="List jobs, newest first")
+def list_jobs(session: SessionDep, _read: ReadAccessDep,
+              limit: Annotated[int, Query(ge=1, le=100)] = 20,
+              offset: Annotated[int, Query(ge=0, le=1_000_000)] = 0,
+              state: JobState | None = None,
+              capture_id: Annotated[str | None, Query(pattern=ID_PATTERN)] = None) -> JobPage:
+    query = select(Job)
+    if state is not None:
+        query = query.where(Job.state == state)
+    if capture_id is not None:
+        query = query.where(Job.capture_id == capture_id)
+    total = session.scalar(select(func.count()).select_from(query.subquery())) or 0
+    rows = session.scalars(query.order_by(Job.created_at.desc(), Job.id).limit(limit)
+                           .offset(offset))
+    return JobPage(items=[JobPublic.of(r) for r in rows], total=total, limit=limit,
+                   offset=offset)
+
+
+_JOB_BY_ID = select(Job.__table__).where(Job.__table__.c.id == bindparam("job_id"))
+
+
+@router.get("/{job_id}", response_model=JobPublic, responses={404: {}})
+async def get_job(job_id: JobId, request: Request, gateway: GatewayDep,
+                  credentials: BearerDep) -> Response:
+    # The hottest endpoint (clients poll it), kept lean: no thread hop (the primary-key read
+    # takes well under a millisecond, so it runs on the event loop), a compiled Core query
+    # instead of the ORM, and one serialisation.
+    if gateway.settings.require_auth_for_reads:
+        await read_access(gateway, credentials)
+    with gateway.engine.connect() as conn:
+        row = conn.execute(_JOB_BY_ID, {"job_id": job_id}).first()
+    if row is None:
+        raise _not_found(job_id)
+    return Response(JobPublic.of(row).model_dump_json(), media_type="application/json")
+
+
+@router.delete("/{job_id}", response_model=JobPublic, responses={404: {}, 409: {}},
+               summary="Cancel a job")
+def cancel_job(job_id: JobId, gateway: GatewayDep, _key: ApiKeyDep) -> JobPublic:
+    """Stops the job: a queued stage never starts, a running one stops at its next progress
+    report (or at its end); artifacts already computed are kept for later jobs."""
+    with gateway.sessions() as session:
+        row = session.get(Job, job_id, with_for_update=True)
+        if row is None:
+            raise _not_found(job_id)
+        if row.state in ("succeeded", "failed"):
+            raise ProblemError(409, f"Job {job_id} has already {row.state}; nothing to cancel.",
+                               kind="job-finished")
+        if row.state != "cancelled":
+            now = utcnow()
+            row.state, row.updated_at, row.finished_at = "cancelled", now, now
+            session.commit()
+            if row.task_id:
+                gateway.revoke(row.task_id)
+        return JobPublic.of(row)
+
+
+def _snapshot(gateway: Gateway, job_id: str) -> JobPublic | None:
+    with gateway.sessions() as session:
+        row = session.get(Job, job_id)
+        return None if row is None else JobPublic.of(row)
+
+
+async def _events(request: Request, gateway: Gateway, first: JobPublic) -> AsyncIterator[str]:
+    last = ""
+    current: JobPublic | None = first
+    quiet_since = time.monotonic()
+    while current is not None:
+        data = current.model_dump_json()
+        if data != last:
+            last = data
+            quiet_since = time.monotonic()
+            yield f"event: job\nid: {current.updated_at.timestamp() if current.updated_at else 0}"\
+                  f"\ndata: {data}\n\n"
+            if current.state in TERMINAL_STATES:
+                return
+        elif time.monotonic() - quiet_since > EVENT_KEEPALIVE_S:
+            quiet_since = time.monotonic()
+            yield ": keep-alive\n\n"
+        if await request.is_disconnected():
+            return
+        await asyncio.sleep(EVENT_POLL_S)
+        current = await run_in_threadpool(_snapshot, gateway, first.id)
+
+
+@router.get("/{job_id}/events", summary="Job progress as server-sent events",
+            response_class=StreamingResponse, responses={
+                200: {"content": {"text/event-stream": {"schema": {"type": "string"}}},
+                      "description": "`event: job` with the job as JSON on every change; the "
+                                     "stream ends once the job has finished."},
+                404: {}})
+async def job_events(job_id: JobId, request: Request, gateway: GatewayDep,
+                     _read: ReadAccessDep) -> StreamingResponse:
+    first = await run_in_threadpool(_snapshot, gateway, job_id)
+    if first is None:
+        raise _not_found(job_id)
+    return StreamingResponse(_events(request, gateway, first), media_type="text/event-stream",
+                             headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
+
+

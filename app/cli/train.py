@@ -1,0 +1,205 @@
+"""`volumesh train`: trains the regressor, the VAE and the U-Net + ControlNet; writes weights."""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from app.cli import app
+
+VALIDATION_MESHES = ("spot", "fandisk")
+TEST_MESH_PREFIX = "stanford-bunny"
+STAGES = "regressor,vae,ldm"
+MESHES = Path("../shared/data/meshes")
+
+
+@app.command()
+def train(
+    out: Annotated[Path, typer.Option("--out", help="Directory for checkpoints and weights.")],
+    config: Annotated[str, typer.Option("--config", help="tiny | small | large")] = "small",
+    resume: Annotated[bool, typer.Option("--resume", help="Continue from --out.")] = False,
+    device: Annotated[str, typer.Option("--device", help="auto | cpu | cuda")] = "auto",
+    seed: Annotated[int, typer.Option("--seed")] = 0,
+    stages: Annotated[str, typer.Option("--stages", help="Comma-separated.")] = STAGES,
+    meshes: Annotated[Path, typer.Option("--meshes", help="Folder of source meshes.")] = MESHES,
+    procedural: Annotated[int, typer.Option("--procedural", help="Procedural shapes.")] = 6,
+    budget_scale: Annotated[
+        float, typer.Option("--budget-scale", help="Multiply every stage's steps and minutes.")
+    ] = 1.0,
+) -> None:
+    """Train the enhancement models from meshes (never the bunny: it is the test model)."""
+    from tqdm import tqdm
+
+    from pipeline.enhance import train as tr
+    from pipeline.enhance.data import make_pairs, procedural_meshes
+    from pipeline.enhance.inference import weights_to_bytes
+    from pipeline.enhance.validate import validate_ldm, validate_regressor
+    from pipeline.io.mesh_io import read_mesh
+
+    if config not in tr.CONFIGS:
+        raise ValueError(f"--config: {config!r} is not one of {', '.join(tr.CONFIGS)}")
+    cfg = tr.scaled(tr.CONFIGS[config], budget_scale) if budget_scale != 1.0 else tr.CONFIGS[config]
+    wanted = [s.strip() for s in stages.split(",") if s.strip()]
+    for s in wanted:
+        if s not in ("regressor", "vae", "ldm"):
+            raise ValueError(f"--stages: unknown stage {s!r}")
+    dev = tr.resolve_device(device)
+    device = dev.type
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "checkpoints").mkdir(exist_ok=True)
+    report_path = out / "training.json"
+    report = json.loads(report_path.read_text()) if resume and report_path.exists() else {}
+    report.update({"config": asdict(cfg), "seed": seed, "device": device})
+
+    sources = sorted(p for p in meshes.glob("*") if p.suffix.lower() in (".obj", ".ply", ".off"))
+    sources = [p for p in sources if not p.stem.startswith(TEST_MESH_PREFIX)]
+    named = [(p.stem, read_mesh(p)) for p in sources]
+    val_names = [n for n, _ in named if n in VALIDATION_MESHES] or [n for n, _ in named][-1:]
+    procs = procedural_meshes(__import__("numpy").random.default_rng(seed), procedural + 1)
+    train_set = [(n, m) for n, m in named if n not in val_names] + procs[:-1]
+    val_set = [(n, m) for n, m in named if n in val_names] + procs[-1:]
+    report["data"] = {"train": [n for n, _ in train_set], "validation": [n for n, _ in val_set]}
+    t0 = time.monotonic()
+    with tqdm(total=100, desc="data", unit="%") as bar:
+        train_pairs = make_pairs(train_set, cfg.data, seed, lambda f: _bar(bar, f))
+    val_pairs = make_pairs(val_set, cfg.data, seed + 1000)
+    report["data"].update(
+        {
+            "train_pairs": len(train_pairs.source),
+            "validation_pairs": len(val_pairs.source),
+            "seconds": time.monotonic() - t0,
+        }
+    )
+
+    def checkpoint_io(stage: str):
+        path = out / "checkpoints" / f"{stage}.pt"
+        state = None
+        if resume and path.exists():
+            state = tr.checkpoint_from_bytes(path.read_bytes())
+
+        def save(ck: dict) -> None:
+            tmp = path.with_suffix(".tmp")
+            tmp.write_bytes(tr.checkpoint_to_bytes(ck))
+            tmp.replace(path)  # atomic: an interrupted write never spoils the last checkpoint
+
+        return state, save
+
+    def bar_for(stage: str):
+        bar = tqdm(total=1000, desc=stage)
+
+        def cb(f: float, text: str) -> None:
+            bar.n = int(f * 1000)
+            bar.set_postfix_str(text, refresh=False)
+            bar.refresh()
+
+        return bar, cb
+
+    def finished(name: str) -> bytes | None:
+        path = out / f"{name}.safetensors"
+        return path.read_bytes() if resume and path.exists() else None
+
+    vae = None
+    for stage in wanted:
+        done = finished(stage)
+        if done is not None and stage != "ldm":
+            if stage == "vae":
+                from pipeline.enhance.inference import load_vae
+
+                vae = load_vae(done).to(dev)
+            continue
+        if done is not None:
+            continue
+        resume_state, save = checkpoint_io(stage)
+        bar, cb = bar_for(stage)
+        t_stage = time.monotonic()
+        if stage == "regressor":
+            model, log = tr.train_regressor(train_pairs, cfg, seed, dev, resume_state, save, cb)
+            data = weights_to_bytes(model.state_dict(), asdict(cfg.regressor))
+            figures = validate_regressor(model, val_pairs, cfg.validation_views, dev)
+        elif stage == "vae":
+            vae, log = tr.train_vae(train_pairs, cfg, seed, dev, resume_state, save, cb)
+            data = weights_to_bytes(vae.state_dict(), asdict(cfg.vae))
+            figures = validate_ldm(None, vae, val_pairs, cfg.validation_views, dev)
+        else:
+            if vae is None:
+                raise ValueError("--stages: ldm needs the vae stage (or its weights in --out)")
+            unet, control, log = tr.train_ldm(
+                train_pairs, vae, cfg, seed, dev, resume_state, save, cb
+            )
+            state = {f"unet.{k}": v for k, v in unet.state_dict().items()}
+            state.update({f"controlnet.{k}": v for k, v in control.state_dict().items()})
+            data = weights_to_bytes(state, asdict(cfg.unet))
+            figures = validate_ldm((unet, control), vae, val_pairs, cfg.validation_views, dev)
+        bar.close()
+        (out / f"{stage}.safetensors").write_bytes(data)
+        report[stage] = {
+            "steps": log[-1]["step"] if log else 0,
+            "train_seconds": log[-1]["seconds"] if log else 0.0,
+            "wall_seconds_this_run": time.monotonic() - t_stage,
+            "final_loss": log[-1]["loss"] if log else None,
+            "loss_log": log[:: max(1, len(log) // 50)],
+            "validation": figures,
+        }
+        report_path.write_text(json.dumps(report, indent=1))
+        typer.echo(f"{stage}: {json.dumps(figures)}")
+    report_path.write_text(json.dumps(report, indent=1))
+    (out / "MODEL_CARD.md").write_text(model_card(report))
+
+
+def model_card(report: dict) -> str:
+    """Markdown model card from the training report (config, data, time, validation)."""
+    cfg = report["config"]
+    lines = [
+        "# volumesh depth enhancer weights",
+        "",
+        "Trained in-house by `volumesh train`; no pretrained weights were used.",
+        "",
+        f"- configuration: `{cfg['name']}`, seed {report['seed']}, device `{report['device']}`",
+        f"- training meshes: {', '.join(report['data']['train'])}",
+        f"- validation meshes (held apart by mesh): {', '.join(report['data']['validation'])}",
+        "- never trained on: stanford-bunny (the benchmark's test model)",
+        f"- pairs: {report['data']['train_pairs']} training, "
+        f"{report['data']['validation_pairs']} validation, "
+        f"{cfg['data']['resolution']}² normalised depth (per view, relative to the bounding "
+        "sphere); degradations: vertex noise along normals, Azure-Kinect-like axial noise and "
+        "flying pixels, holes, 4x down-then-up sampling",
+        f"- crops {cfg['crop']}², batch {cfg['batch']}, AdamW, warm-up + cosine schedule",
+        "",
+        "| stage | steps | training time (min) | final loss |",
+        "| --- | --- | --- | --- |",
+    ]
+    for stage in ("regressor", "vae", "ldm"):
+        if stage in report:
+            r = report[stage]
+            loss = r["final_loss"]
+            lines.append(
+                f"| {stage} | {r['steps']} | {r['train_seconds'] / 60:.1f} | "
+                f"{loss if loss is None else round(loss, 4)} |"
+            )
+    lines += [
+        "",
+        "Validation (held-apart meshes; depth RMSE in thousandths of the view's depth range,",
+        "about 1.6 mm per unit on a 1 m model; `edge` = 3-pixel band at depth edges):",
+        "",
+        "| stage | method | RMSE | edge RMSE |",
+        "| --- | --- | --- | --- |",
+    ]
+    for stage in ("regressor", "vae", "ldm"):
+        for method, fig in report.get(stage, {}).get("validation", {}).items():
+            if isinstance(fig, dict):
+                lines.append(
+                    f"| {stage} | {method} | {fig['rmse_permille']:.3f} | "
+                    f"{fig['edge_rmse_permille']:.3f} |"
+                )
+    lines += ["", "Config:", "", "```json", json.dumps(cfg, indent=1), "```", ""]
+    return "\n".join(lines)
+
+
+def _bar(bar, fraction: float) -> None:
+    bar.n = int(fraction * 100)
+    bar.refresh()

@@ -1,0 +1,1 @@
+"""Gateway internals: settings, errors as problem+json, security, uploads."""

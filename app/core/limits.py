@@ -1,0 +1,62 @@
+"""Request body limits, enforced before and while a body streams in."""
+
+from __future__ import annotations
+
+from starlette.exceptions import HTTPException
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from app.core.problems import problem_response
+
+UPLOAD_PATH = "/api/v1/captures"
+_MULTIPART_SLACK = 1024 * 1024
+
+
+class BodyLimitMiddleware:
+    """413 for bodies over the limit: uploads get the upload limit, everything else the JSON one.
+
+    A declared Content-Length over the limit is refused before the app runs; a chunked body is
+    counted as it arrives and stopped at the limit.
+    """
+
+    def __init__(self, app: ASGIApp, upload_limit: int, json_limit: int) -> None:
+        self.app = app
+        self.upload_limit = upload_limit + _MULTIPART_SLACK
+        self.json_limit = json_limit
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        is_upload = scope["path"].rstrip("/") == UPLOAD_PATH and scope["method"] == "POST"
+        limit = self.upload_limit if is_upload else self.json_limit
+        declared = _content_length(scope)
+        if declared is not None and declared > limit:
+            what = "capture upload" if is_upload else "request body"
+            response = problem_response(
+                413, f"The {what} of {declared} bytes is larger than the limit of {limit} bytes.",
+                kind="body-too-large", instance=scope["path"])
+            await response(scope, receive, send)
+            return
+        received = 0
+
+        async def counted() -> Message:
+            nonlocal received
+            message = await receive()
+            if message["type"] == "http.request":
+                received += len(message.get("body", b""))
+                if received > limit:
+                    raise HTTPException(413, f"The request body passed the limit of {limit} "
+                                        "bytes.")
+            return message
+
+        await self.app(scope, counted, send)
+
+
+def _content_length(scope: Scope) -> int | None:
+    for name, value in scope.get("headers", ()):
+        if name == b"content-length":
+            try:
+                return int(value)
+            except ValueError:
+                return None
+    return None

@@ -1,0 +1,120 @@
+"""Errors as RFC 9457 problem details (``application/problem+json``).
+
+Every error the gateway returns goes through here, validation errors included, so a client
+always gets ``{"type", "title", "status", "detail"}`` with a ``detail`` a person can act on.
+"""
+
+from __future__ import annotations
+
+import logging
+from http import HTTPStatus
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+PROBLEM_MEDIA_TYPE = "application/problem+json"
+PROBLEM_TYPE_BASE = "https://volumesh.dev/problems/"
+
+log = logging.getLogger(__name__)
+
+
+class ProblemError(Exception):
+    """Raised anywhere in the gateway to answer with a problem."""
+
+    def __init__(self, status: int, detail: str, *, kind: str | None = None,
+                 headers: dict[str, str] | None = None, **extra: Any) -> None:
+        super().__init__(detail)
+        self.status = status
+        self.detail = detail
+        self.kind = kind
+        self.headers = headers or {}
+        self.extra = extra
+
+
+def problem_response(status: int, detail: str, *, kind: str | None = None,
+                     instance: str | None = None, headers: dict[str, str] | None = None,
+                     **extra: Any) -> JSONResponse:
+    title = HTTPStatus(status).phrase if status in HTTPStatus._value2member_map_ else "Error"
+    slug = kind or title.lower().replace(" ", "-")
+    body: dict[str, Any] = {"type": PROBLEM_TYPE_BASE + slug, "title": title,
+                            "status": status, "detail": detail}
+    if instance:
+        body["instance"] = instance
+    body.update(extra)
+    return JSONResponse(body, status_code=status, headers=headers,
+                        media_type=PROBLEM_MEDIA_TYPE)
+
+
+def _location(loc: tuple[Any, ...] | list[Any]) -> str:
+    parts = [str(p) for p in loc if p not in ("body",)] or ["body"]
+    return ".".join(parts)
+
+
+def _validation_detail(errors: list[dict[str, Any]]) -> str:
+    messages = []
+    for error in errors[:5]:
+        where = _location(error.get("loc", ()))
+        messages.append(f"{where}: {error.get('msg', 'invalid')}")
+    more = f" (and {len(errors) - 5} more)" if len(errors) > 5 else ""
+    return "; ".join(messages) + more
+
+
+async def _on_problem(request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, ProblemError)
+    return problem_response(exc.status, exc.detail, kind=exc.kind, instance=request.url.path,
+                            headers=exc.headers, **exc.extra)
+
+
+async def _on_http(request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, StarletteHTTPException)
+    status = exc.status_code
+    detail = exc.detail if isinstance(exc.detail, str) else str(exc.detail)
+    if status == 404 and detail == "Not Found":
+        detail = f"There is no resource at {request.url.path}; the API lives under /api/v1."
+    elif status == 405:
+        detail = f"{request.method} is not allowed on {request.url.path}."
+    return problem_response(status, detail, instance=request.url.path,
+                            headers=dict(exc.headers or {}))
+
+
+async def _on_validation(request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, RequestValidationError)
+    errors = [dict(e) for e in exc.errors()]
+    public = [{"loc": list(e.get("loc", ())), "msg": e.get("msg"), "type": e.get("type")}
+              for e in errors]
+    return problem_response(422, _validation_detail(errors), kind="validation-error",
+                            instance=request.url.path, errors=public)
+
+
+async def _on_unavailable(request: Request, exc: Exception) -> JSONResponse:
+    # The broker or the job store is down: nothing the client did; worth retrying.
+    from kombu.exceptions import OperationalError as BrokerError
+
+    what = "task broker" if isinstance(exc, BrokerError) else "job store"
+    log.warning("%s unreachable on %s %s: %s", what, request.method, request.url.path, exc)
+    return problem_response(503, f"The {what} is unreachable; nothing was queued or changed. "
+                            "Try again shortly.", kind="service-unavailable",
+                            instance=request.url.path, headers={"Retry-After": "5"})
+
+
+async def _on_unexpected(request: Request, exc: Exception) -> JSONResponse:
+    # A bug, not bad input: log it whole, tell the client without leaking internals.
+    log.exception("unhandled error on %s %s", request.method, request.url.path)
+    return problem_response(500, "The server failed unexpectedly; the error was logged.",
+                            instance=request.url.path)
+
+
+def install(app: FastAPI) -> None:
+    """Route every error of ``app`` through problem+json."""
+    app.add_exception_handler(ProblemError, _on_problem)
+    app.add_exception_handler(StarletteHTTPException, _on_http)
+    app.add_exception_handler(RequestValidationError, _on_validation)
+    from kombu.exceptions import OperationalError as BrokerError
+    from sqlalchemy.exc import InterfaceError, OperationalError
+
+    for unavailable in (BrokerError, OperationalError, InterfaceError):
+        app.add_exception_handler(unavailable, _on_unavailable)
+    app.add_exception_handler(Exception, _on_unexpected)

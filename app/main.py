@@ -1,0 +1,87 @@
+"""The gateway application: ``create_app(settings)``."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI
+from fastapi.middleware.cors import CORSMiddleware
+
+from app.api.routes import assets, captures, health, jobs
+from app.core import problems
+from app.core.context import Gateway
+from app.core.limits import BodyLimitMiddleware
+from app.core.metrics import MetricsMiddleware
+from app.core.uploads import clean_stale_uploads
+from app.docs import mount_docs
+from app.schemas import API_PREFIX
+from workers.settings import Settings, get_settings
+
+log = logging.getLogger(__name__)
+
+DESCRIPTION = """Multi-camera RGB-D captures in, Draco-compressed glTF meshes out.
+
+Upload a capture zip (`POST /api/v1/captures`), queue a job (`POST /api/v1/jobs`), follow it
+(`GET /api/v1/jobs/{id}` or its server-sent `events`) and fetch `mesh.glb` from its asset.
+Writes need `Authorization: Bearer <api key>`; errors are RFC 9457 problem+json."""
+
+
+def _include_api(app: FastAPI) -> None:
+    # Each resource router straight on the app (not nested in an /api/v1 router): one routing
+    # level less on every request.
+    for module in (captures, jobs, assets):
+        app.include_router(module.router, prefix=API_PREFIX)
+
+
+def _mount_viewer(app: FastAPI) -> None:
+    try:
+        from app.web import mount_viewer
+    except ImportError:
+        return
+    try:
+        mount_viewer(app)
+    except ValueError as exc:  # no static/ in this install: the API alone
+        log.info("viewer not served: %s", exc)
+
+
+def create_app(settings: Settings | None = None, *, viewer: bool = True) -> FastAPI:
+    """The gateway for ``settings`` (default: from ``VOLUMESH_*``)."""
+    settings = settings or get_settings()
+    gateway = Gateway.create(settings)
+
+    @asynccontextmanager
+    async def lifespan(_: FastAPI) -> AsyncIterator[None]:
+        gateway.start()
+        removed = clean_stale_uploads(settings.tmp_dir, settings.stale_upload_s)
+        if removed:
+            log.info("removed %d partial uploads left by a stopped gateway", removed)
+        yield
+        gateway.close()
+
+    app = FastAPI(title="volumesh", version="0.1.0", description=DESCRIPTION,
+                  lifespan=lifespan, docs_url=None, openapi_url="/openapi.json")
+    app.state.gateway = gateway
+    problems.install(app)
+    _include_api(app)
+    app.include_router(health.router)
+    mount_docs(app)
+    if viewer:
+        _mount_viewer(app)
+    app.add_middleware(BodyLimitMiddleware, upload_limit=settings.max_upload_bytes,
+                       json_limit=settings.max_json_bytes)
+    if settings.cors_origins:
+        app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins,
+                           allow_methods=["GET", "HEAD", "POST", "DELETE", "OPTIONS"],
+                           allow_headers=["Authorization", "Content-Type", "Range",
+                                          "If-None-Match", "If-Range"],
+                           expose_headers=["ETag", "Content-Range", "Accept-Ranges", "Location",
+                                           "Content-Length"])
+    app.add_middleware(MetricsMiddleware, metrics=gateway.metrics)
+    return app
+
+
+def app_from_env() -> FastAPI:
+    """Factory for ``uvicorn --factory app.main:app_from_env`` (settings from the environment)."""
+    return create_app()

@@ -1,0 +1,219 @@
+"""Minimum/maximum triangle-angle criteria enforced after isotropic remeshing.
+
+Isotropic remeshing leaves a few needles (one tiny angle, one short edge) and caps (one
+angle near 180 degrees) where the target length meets boundaries and thin features. Caps
+are removed by flipping the edge opposite their large angle, needles by collapsing their
+shortest edge. Each pass works on an independent set of operations chosen in parallel
+(worst triangle first), so it stays vectorised; a few passes settle it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from pipeline.mesh import face_normals
+from pipeline.mesh_repair import compact, edge_table, triangle_angles_deg
+
+FloatArray = NDArray[np.float64]
+Faces = NDArray[np.int32]
+
+
+def _edge_faces(opposite: NDArray[np.int64], edge_count: int
+                ) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
+    """For every edge: its number of faces and up to two (face, corner) half-edges."""
+    flat = opposite.ravel()
+    order = np.argsort(flat, kind="stable")
+    counts = np.bincount(flat, minlength=edge_count)
+    start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    first = order[start]
+    second = order[np.minimum(start + 1, len(order) - 1)]
+    return counts, first, second
+
+
+def _rank_claims(priority: FloatArray, claims: list[NDArray[np.int64]], size: int
+                 ) -> NDArray[np.bool_]:
+    """Candidates that rank best (lowest priority) among all that claim any shared item."""
+    order = np.argsort(priority, kind="stable")
+    rank = np.empty(len(priority), dtype=np.int64)
+    rank[order] = np.arange(len(priority))
+    best = np.full(size, len(priority), dtype=np.int64)
+    for items in claims:
+        np.minimum.at(best, items, rank)
+    ok = np.ones(len(priority), dtype=bool)
+    for items in claims:
+        ok &= best[items] == rank
+    return ok
+
+
+def flip_caps(vertices_m: FloatArray, faces: Faces, max_angle_deg: float) -> tuple[Faces, int]:
+    """Flip the edge opposite each angle above max_angle_deg where that makes both faces
+    better (larger smallest angle) and keeps the surface unfolded. Returns faces, flips."""
+    angles = triangle_angles_deg(vertices_m, faces)
+    worst_corner = np.argmax(angles, axis=1)
+    cand_face = np.nonzero(angles.max(axis=1) > max_angle_deg)[0]
+    if len(cand_face) == 0:
+        return faces, 0
+    edges, opposite = edge_table(faces)
+    counts, first, second = _edge_faces(opposite, len(edges))
+    corner = worst_corner[cand_face]
+    edge = opposite[cand_face, corner]
+    interior = counts[edge] == 2
+    cand_face, corner, edge = cand_face[interior], corner[interior], edge[interior]
+    # Both faces of an edge may ask for the same flip: keep one request per edge.
+    _, once = np.unique(edge, return_index=True)
+    cand_face, corner, edge = cand_face[once], corner[once], edge[once]
+    half = np.where(first[edge] // 3 == cand_face, second[edge], first[edge])
+    other_face, other_corner = half // 3, half % 3
+    p = faces[cand_face, corner]
+    a = faces[cand_face, (corner + 1) % 3]
+    b = faces[cand_face, (corner + 2) % 3]
+    q = faces[other_face, other_corner]
+    new_f = np.column_stack([p, a, q]).astype(np.int32)
+    new_g = np.column_stack([p, q, b]).astype(np.int32)
+    old_min = np.minimum(angles[cand_face].min(axis=1), angles[other_face].min(axis=1))
+    new_min = np.minimum(triangle_angles_deg(vertices_m, new_f).min(axis=1),
+                         triangle_angles_deg(vertices_m, new_g).min(axis=1))
+    old_n = face_normals(vertices_m, faces[cand_face]) + face_normals(vertices_m,
+                                                                      faces[other_face])
+    unfolded = ((np.sum(face_normals(vertices_m, new_f) * old_n, axis=1) > 0.5)
+                & (np.sum(face_normals(vertices_m, new_g) * old_n, axis=1) > 0.5))
+    pair_key = np.minimum(p, q).astype(np.int64) * (len(vertices_m) + 1) + np.maximum(p, q)
+    existing = edges[:, 0] * (len(vertices_m) + 1) + edges[:, 1]
+    fresh = ~np.isin(pair_key, existing) & (p != q)
+    _, key_counts = np.unique(pair_key, return_counts=True)
+    unique_new = key_counts[np.searchsorted(np.unique(pair_key), pair_key)] == 1
+    good = (new_min > old_min) & unfolded & fresh & unique_new
+    chosen = np.nonzero(good)[0]
+    chosen = chosen[_rank_claims(-angles[cand_face[chosen]].max(axis=1),
+                                 [cand_face[chosen], other_face[chosen]], len(faces))]
+    out = faces.copy()
+    out[cand_face[chosen]] = new_f[chosen]
+    out[other_face[chosen]] = new_g[chosen]
+    return out, len(chosen)
+
+
+def collapse_needles(vertices_m: FloatArray, faces: Faces, min_angle_deg: float
+                     ) -> tuple[FloatArray, Faces, int]:
+    """Collapse the shortest edge of each face with an angle below min_angle_deg to its
+    midpoint, where both ends are interior, the link condition holds and no face folds."""
+    angles = triangle_angles_deg(vertices_m, faces)
+    cand_face = np.nonzero(angles.min(axis=1) < min_angle_deg)[0]
+    if len(cand_face) == 0:
+        return vertices_m, faces, 0
+    edges, opposite = edge_table(faces)
+    counts, _, _ = _edge_faces(opposite, len(edges))
+    boundary_vertex = np.zeros(len(vertices_m), dtype=bool)
+    boundary_vertex[edges[counts == 1].ravel()] = True
+    edge = np.unique(opposite[cand_face, np.argmin(angles[cand_face], axis=1)])
+    a, b = edges[edge, 0], edges[edge, 1]
+    # A boundary end stays where it is (the kept end, a); two boundary ends are left alone.
+    swap = boundary_vertex[b]
+    a, b = np.where(swap, b, a), np.where(swap, a, b)
+    keep = ~boundary_vertex[b] & (counts[edge] == 2)
+    a, b = a[keep], b[keep]
+    if len(a) == 0:
+        return vertices_m, faces, 0
+    from scipy.sparse import coo_matrix
+
+    n = len(vertices_m)
+    adj = coo_matrix((np.ones(2 * len(edges)), (np.concatenate([edges[:, 0], edges[:, 1]]),
+                                                np.concatenate([edges[:, 1], edges[:, 0]]))),
+                     shape=(n, n)).tocsr()
+    common = np.asarray(adj[a].multiply(adj[b]).sum(axis=1)).ravel()
+    link_ok = common == 2
+    a, b = a[link_ok], b[link_ok]
+    length = np.linalg.norm(vertices_m[a] - vertices_m[b], axis=1)
+    # Claim each end and its one-ring, so no two collapses touch the same faces.
+    ring_best = _ring_exclusive(length, a, b, edges, n)
+    a, b = a[ring_best], b[ring_best]
+    new_pos, new_faces, alive = _apply_collapses(vertices_m, faces, a, b, boundary_vertex)
+    before = face_normals(vertices_m, faces)
+    after = face_normals(new_pos, new_faces)
+    folded = alive & (np.sum(before * after, axis=1) < 0.3)
+    if folded.any():
+        # Leave out the collapses that would fold a face, then apply the rest.
+        touched = np.zeros(n, dtype=bool)
+        touched[faces[folded].ravel()] = True
+        ok = ~(touched[a] | touched[b])
+        a, b = a[ok], b[ok]
+        new_pos, new_faces, alive = _apply_collapses(vertices_m, faces, a, b, boundary_vertex)
+    out_v, out_f = compact(new_pos, new_faces[alive])
+    return out_v, out_f, len(a)
+
+
+def _apply_collapses(vertices_m: FloatArray, faces: Faces, a: NDArray[np.int64],
+                     b: NDArray[np.int64], boundary_vertex: NDArray[np.bool_]
+                     ) -> tuple[FloatArray, Faces, NDArray[np.bool_]]:
+    """Vertices b merged into a (at the midpoint, or at a when a is on the boundary)."""
+    new_pos = vertices_m.copy()
+    new_pos[a] = np.where(boundary_vertex[a][:, None], vertices_m[a],
+                          0.5 * (vertices_m[a] + vertices_m[b]))
+    target = np.arange(len(vertices_m))
+    target[b] = a
+    new_faces = target[faces].astype(np.int32)
+    alive = ((new_faces[:, 0] != new_faces[:, 1]) & (new_faces[:, 1] != new_faces[:, 2])
+             & (new_faces[:, 2] != new_faces[:, 0]))
+    return new_pos, new_faces, alive
+
+
+def _ring_exclusive(priority: FloatArray, a: NDArray[np.int64], b: NDArray[np.int64],
+                    edges: NDArray[np.int64], vertex_count: int) -> NDArray[np.bool_]:
+    """Candidates (a, b) best ranked among all candidates within one ring of a or b."""
+    order = np.argsort(priority, kind="stable")
+    rank = np.empty(len(priority), dtype=np.int64)
+    rank[order] = np.arange(len(priority))
+    best = np.full(vertex_count, len(priority), dtype=np.int64)
+    np.minimum.at(best, a, rank)
+    np.minimum.at(best, b, rank)
+    spread = best.copy()
+    np.minimum.at(spread, edges[:, 0], best[edges[:, 1]])
+    np.minimum.at(spread, edges[:, 1], best[edges[:, 0]])
+    return np.asarray((spread[a] == rank) & (spread[b] == rank))
+
+
+def drop_boundary_slivers(vertices_m: FloatArray, faces: Faces, min_angle_deg: float,
+                          max_angle_deg: float) -> tuple[Faces, int]:
+    """Remove faces outside the angle criteria that lie on the mesh boundary, where neither
+    a flip nor a collapse can fix them: ears (two boundary edges), and faces with one
+    boundary edge whose opposite vertex is interior (removing them keeps it manifold)."""
+    angles = triangle_angles_deg(vertices_m, faces)
+    bad = (angles.min(axis=1) < min_angle_deg) | (angles.max(axis=1) > max_angle_deg)
+    if not bad.any():
+        return faces, 0
+    edges, opposite = edge_table(faces)
+    counts = np.bincount(opposite.ravel(), minlength=len(edges))
+    on_boundary = counts[opposite] == 1  # (F, 3): edge opposite each corner is a boundary
+    boundary_vertex = np.zeros(len(vertices_m), dtype=bool)
+    boundary_vertex[edges[counts == 1].ravel()] = True
+    n_boundary = on_boundary.sum(axis=1)
+    apex = faces[np.arange(len(faces)), np.argmax(on_boundary, axis=1)]
+    removable = bad & ((n_boundary == 2) | ((n_boundary == 1) & ~boundary_vertex[apex]))
+    cand = np.nonzero(removable)[0]
+    if len(cand) == 0:
+        return faces, 0
+    priority = angles[cand].min(axis=1)
+    chosen = cand[_rank_claims(priority, [faces[cand, 0], faces[cand, 1], faces[cand, 2]],
+                               len(vertices_m))]
+    keep = np.ones(len(faces), dtype=bool)
+    keep[chosen] = False
+    return faces[keep], len(chosen)
+
+
+def enforce_angles(vertices_m: FloatArray, faces: Faces, min_angle_deg: float,
+                   max_angle_deg: float, passes: int = 3
+                   ) -> tuple[FloatArray, Faces, dict[str, int]]:
+    """Flip caps, collapse needles, drop boundary slivers for a few passes; returns the
+    mesh and operation counts."""
+    stats = {"flips": 0, "collapses": 0, "boundary_drops": 0}
+    for _ in range(passes):
+        faces, flips = flip_caps(vertices_m, faces, max_angle_deg)
+        vertices_m, faces, collapses = collapse_needles(vertices_m, faces, min_angle_deg)
+        faces, drops = drop_boundary_slivers(vertices_m, faces, min_angle_deg, max_angle_deg)
+        stats["flips"] += flips
+        stats["collapses"] += collapses
+        stats["boundary_drops"] += drops
+        if flips == 0 and collapses == 0 and drops == 0:
+            break
+    vertices_m, faces = compact(vertices_m, faces)
+    return vertices_m, faces, stats

@@ -1,0 +1,6 @@
+"""LDM mesh enhancement (DESIGN.md step 8): depth views of a mesh are enhanced and the vertices
+follow them. The only package that imports torch (lazily, inside functions)."""
+
+from pipeline.enhance.config import EnhanceConfig, enhance_mesh
+
+__all__ = ["EnhanceConfig", "enhance_mesh"]

@@ -1,0 +1,93 @@
+"""Classical mesh denoisers (no torch) that run through the same `--method` path as the models."""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+from numpy.typing import NDArray
+
+from pipeline.mesh import TriangleMesh, vertex_normals
+
+
+def adjacency(faces: NDArray[np.int32], vertex_count: int) -> sp.csr_matrix:
+    """(V, V) symmetric 0/1 vertex adjacency from the faces' edges."""
+    i = np.concatenate([faces[:, 0], faces[:, 1], faces[:, 2]])
+    j = np.concatenate([faces[:, 1], faces[:, 2], faces[:, 0]])
+    a = sp.coo_matrix((np.ones(len(i)), (i, j)), shape=(vertex_count, vertex_count)).tocsr()
+    a = ((a + a.T) > 0).astype(np.float64)
+    return a.tocsr()
+
+
+def _mean_operator(faces: NDArray[np.int32], vertex_count: int) -> sp.csr_matrix:
+    """Row-normalised adjacency: (M @ v)[i] is the mean of i's neighbours (isolated: itself)."""
+    a = adjacency(faces, vertex_count)
+    deg = np.asarray(a.sum(axis=1)).ravel()
+    lonely = deg == 0
+    a = a + sp.diags(lonely.astype(np.float64))
+    return sp.diags(1.0 / np.maximum(deg, 1.0)) @ a
+
+
+def laplacian_smooth(mesh: TriangleMesh, iterations: int, lam: float = 0.5) -> TriangleMesh:
+    """Uniform-weight Laplacian smoothing: v += lam * (mean of neighbours - v), repeated."""
+    if iterations < 0:
+        raise ValueError(f"iterations must be >= 0, got {iterations}")
+    m = _mean_operator(mesh.faces, mesh.vertex_count)
+    v = mesh.vertices_m.copy()
+    for _ in range(iterations):
+        v = v + lam * (m @ v - v)
+    return mesh.with_vertices(v)
+
+
+def taubin_smooth(
+    mesh: TriangleMesh, iterations: int, lam: float = 0.5, mu: float = -0.53
+) -> TriangleMesh:
+    """Taubin lambda|mu smoothing (shrink, then inflate): one iteration is one pair of steps."""
+    if iterations < 0:
+        raise ValueError(f"iterations must be >= 0, got {iterations}")
+    m = _mean_operator(mesh.faces, mesh.vertex_count)
+    v = mesh.vertices_m.copy()
+    for _ in range(iterations):
+        v = v + lam * (m @ v - v)
+        v = v + mu * (m @ v - v)
+    return mesh.with_vertices(v)
+
+
+def bilateral_denoise(mesh: TriangleMesh, iterations: int, rings: int = 2) -> TriangleMesh:
+    """Bilateral mesh denoising (Fleishman, Drori, Cohen-Or 2003) over k-ring neighbourhoods.
+
+    Each vertex moves along its normal by the bilateral-weighted mean of its neighbours' heights
+    above the tangent plane; the spatial sigma is the mean neighbour distance, the range sigma
+    the spread of heights, both per vertex.
+    """
+    if iterations < 0:
+        raise ValueError(f"iterations must be >= 0, got {iterations}")
+    a = adjacency(mesh.faces, mesh.vertex_count)
+    ring = a.copy()
+    for _ in range(rings - 1):
+        ring = ((ring + ring @ a) > 0).astype(np.float64)
+    ring = ring.tocoo()
+    keep = ring.row != ring.col
+    i, j = ring.row[keep], ring.col[keep]
+    v = mesh.vertices_m.copy()
+    n_vertices = mesh.vertex_count
+    for _ in range(iterations):
+        normals = vertex_normals(v, mesh.faces).astype(np.float64)
+        d = v[j] - v[i]
+        dist = np.linalg.norm(d, axis=1)
+        height = np.sum(d * normals[i], axis=1)
+        sigma_c = np.bincount(i, dist, n_vertices) / np.maximum(np.bincount(i, None, n_vertices), 1)
+        mean_h = np.bincount(i, height, n_vertices) / np.maximum(
+            np.bincount(i, None, n_vertices), 1
+        )
+        var_h = np.bincount(i, (height - mean_h[i]) ** 2, n_vertices) / np.maximum(
+            np.bincount(i, None, n_vertices), 1
+        )
+        sigma_s = np.sqrt(var_h) + 1e-12
+        w = np.exp(-(dist**2) / (2 * sigma_c[i] ** 2 + 1e-30)) * np.exp(
+            -(height**2) / (2 * sigma_s[i] ** 2)
+        )
+        offset = np.bincount(i, w * height, n_vertices) / np.maximum(
+            np.bincount(i, w, n_vertices), 1e-30
+        )
+        v = v + normals * offset[:, None]
+    return mesh.with_vertices(v)

@@ -1,0 +1,96 @@
+"""`enhance_mesh`: render views, enhance them with the chosen method, move the vertices."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from pipeline.enhance.render import DepthRenders, make_views, render_depth, view_directions
+from pipeline.enhance.update import UpdateConfig, update_vertices
+from pipeline.mesh import TriangleMesh
+
+METHODS = ("ldm", "regressor", "views", "taubin", "laplacian", "bilateral")
+
+
+@dataclass(frozen=True)
+class EnhanceConfig:
+    """How to enhance a mesh."""
+
+    method: str = "ldm"
+    """ldm | regressor | views (raw renders into the update) | taubin | laplacian | bilateral."""
+    views: int = 6
+    """Number of depth views (the six axis views first)."""
+    resolution: int = 256
+    """Depth image side in pixels."""
+    steps: int = 4
+    """DDIM steps of the LDM (1 = one-step mode)."""
+    strength: float = 0.5
+    """How far into the noise schedule sampling starts from the degraded latent (0, 1]."""
+    seed: int = 0
+    """Seed of the LDM's start noise."""
+    iterations: int = 8
+    """Iterations of the classical smoothers."""
+    update: UpdateConfig = field(default_factory=UpdateConfig)
+    """How vertices follow the enhanced depth."""
+    device: str = "auto"
+    """Torch device for the networks: auto (CUDA when present), cpu or cuda."""
+    weights: dict[str, bytes] | None = None
+    """safetensors bytes per model ('regressor', 'vae', 'ldm'); None: the shipped weights."""
+
+
+def validate_config(config: EnhanceConfig) -> None:
+    """Raises ValueError naming the first field of `config` that is out of range."""
+    if config.method not in METHODS:
+        raise ValueError(f"method: {config.method!r} is not one of {', '.join(METHODS)}")
+    if config.views < 1:
+        raise ValueError(f"views must be >= 1, got {config.views}")
+    if config.resolution < 16:
+        raise ValueError(f"resolution must be >= 16 pixels, got {config.resolution}")
+    if config.steps < 1:
+        raise ValueError(f"steps must be >= 1, got {config.steps}")
+    if not 0.0 < config.strength <= 1.0:
+        raise ValueError(f"strength must be in (0, 1], got {config.strength}")
+    if config.iterations < 0:
+        raise ValueError(f"iterations must be >= 0, got {config.iterations}")
+
+
+def enhance_mesh(
+    mesh: TriangleMesh,
+    config: EnhanceConfig,
+    progress: Callable[[float], None] | None = None,
+) -> TriangleMesh:
+    """The mesh with vertices moved (connectivity, hence manifoldness, is kept)."""
+    from pipeline.enhance import baselines
+
+    validate_config(config)
+    if mesh.vertex_count == 0 or mesh.face_count == 0:
+        raise ValueError("mesh: has no vertices or no faces")
+    if config.method == "taubin":
+        return baselines.taubin_smooth(mesh, config.iterations)
+    if config.method == "laplacian":
+        return baselines.laplacian_smooth(mesh, config.iterations)
+    if config.method == "bilateral":
+        return baselines.bilateral_denoise(mesh, config.iterations)
+    views = make_views(mesh.vertices_m, view_directions(config.views), config.resolution)
+    renders = render_depth(mesh, views, with_color=True)
+    if progress is not None:
+        progress(0.2)
+    enhanced = enhance_renders(renders, config)
+    if progress is not None:
+        progress(0.8)
+    result, _ = update_vertices(mesh, renders, enhanced, config.update)
+    if progress is not None:
+        progress(1.0)
+    return result
+
+
+def enhance_renders(renders: DepthRenders, config: EnhanceConfig) -> NDArray[np.float32]:
+    """(N, H, W) enhanced normalised depth of all views, in one batch."""
+    if config.method == "views":
+        return renders.depth_n
+    from pipeline.enhance.inference import run_network
+
+    return run_network(renders, config)

@@ -1,0 +1,215 @@
+"""Training pairs: clean depth renders and the same views degraded as reconstruction degrades them.
+
+Degradations: vertex noise along normals (the benchmark's), Azure-Kinect-like axial depth noise
+with flying pixels at edges, holes, and 4x down-then-up sampling. Everything is in normalised
+depth (render.py), so the scale of a source mesh does not matter.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from pipeline.enhance.render import make_views, render_depth
+from pipeline.mesh import TriangleMesh, vertex_normals
+
+
+@dataclass(frozen=True)
+class DataConfig:
+    """How many pairs to make and how to degrade them."""
+
+    resolution: int = 256
+    """Render side in pixels."""
+    poses_per_mesh: int = 8
+    """Random rotations (each with its own noise draw) per source mesh."""
+    views_per_pose: int = 6
+    """Random viewing directions per pose."""
+    edge_fraction: tuple[float, float] = (0.003, 0.007)
+    """Range of target edge length as a fraction of the mesh's largest extent (subdivision)."""
+    noise_fraction: tuple[float, float] = (0.004, 0.013)
+    """Range of the uniform vertex-noise amplitude along normals, fraction of largest extent."""
+    kinect_probability: float = 0.25
+    """Chance a view also gets Azure-Kinect-like axial noise and flying pixels."""
+    hole_probability: float = 0.2
+    """Chance a view gets holes punched in it."""
+    downup_probability: float = 0.2
+    """Chance a view is 4x downsampled and bilinearly upsampled."""
+
+
+@dataclass(frozen=True)
+class DepthPairs:
+    """Aligned degraded/clean normalised depth images."""
+
+    degraded_n: NDArray[np.float32]
+    """(N, H, W) degraded normalised depth (1 where invalid)."""
+    degraded_valid: NDArray[np.bool_]
+    """(N, H, W) validity of the degraded depth."""
+    clean_n: NDArray[np.float32]
+    """(N, H, W) clean normalised depth of the same view."""
+    loss_mask: NDArray[np.bool_]
+    """(N, H, W) pixels valid in both images (where a loss is defined)."""
+    source: tuple[str, ...]
+    """(N,) name of the source mesh of each pair."""
+
+
+def random_rotation(rng: np.random.Generator) -> NDArray[np.float64]:
+    """A uniformly random 3x3 rotation (QR of a Gaussian matrix, sign-fixed)."""
+    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+    q = q * np.sign(np.diag(r))
+    if np.linalg.det(q) < 0:
+        q[:, 0] = -q[:, 0]
+    return q
+
+
+def subdivide_to(mesh: TriangleMesh, edge_m: float, max_faces: int = 400_000) -> TriangleMesh:
+    """Midpoint-subdivides until the mean edge is at most `edge_m` (or the face budget is hit)."""
+    import open3d as o3d
+
+    o3 = o3d.geometry.TriangleMesh(
+        o3d.utility.Vector3dVector(mesh.vertices_m), o3d.utility.Vector3iVector(mesh.faces)
+    )
+    while True:
+        v, f = np.asarray(o3.vertices), np.asarray(o3.triangles)
+        mean_edge = np.linalg.norm(v[f[:, 0]] - v[f[:, 1]], axis=1).mean()
+        if mean_edge <= edge_m or len(f) * 4 > max_faces:
+            break
+        o3 = o3.subdivide_midpoint(1)
+    return TriangleMesh(np.asarray(o3.vertices).copy(), np.asarray(o3.triangles).astype(np.int32))
+
+
+def procedural_meshes(rng: np.random.Generator, count: int) -> list[tuple[str, TriangleMesh]]:
+    """Spheres, tori, boxes, cylinders and lumpy blobs, at least ~1000 faces each."""
+    import open3d as o3d
+
+    out: list[tuple[str, TriangleMesh]] = []
+    for i in range(count):
+        kind = i % 5
+        if kind == 0:
+            m = o3d.geometry.TriangleMesh.create_sphere(1.0, 40)
+        elif kind == 1:
+            m = o3d.geometry.TriangleMesh.create_torus(1.0, rng.uniform(0.2, 0.5), 60, 30)
+        elif kind == 2:
+            m = o3d.geometry.TriangleMesh.create_box(*rng.uniform(0.4, 1.0, 3)).subdivide_midpoint(
+                3
+            )
+        elif kind == 3:
+            m = o3d.geometry.TriangleMesh.create_cylinder(rng.uniform(0.3, 0.6), 1.0, 40, 8)
+        else:
+            m = o3d.geometry.TriangleMesh.create_sphere(1.0, 60)
+        m.remove_duplicated_vertices()
+        v = np.asarray(m.vertices).copy()
+        f = np.asarray(m.triangles).astype(np.int32)
+        if kind == 4:  # lumpy blob: radial displacement by a few random low-frequency waves
+            d = v / np.linalg.norm(v, axis=1, keepdims=True)
+            bump = np.zeros(len(v))
+            for _ in range(6):
+                k = rng.normal(size=3) * rng.uniform(1.0, 4.0)
+                bump += rng.uniform(0.03, 0.12) * np.sin(d @ k + rng.uniform(0, 2 * np.pi))
+            v = d * (1.0 + bump)[:, None]
+        v = v * rng.uniform(0.6, 1.4, 3)  # anisotropic stretch
+        out.append((f"procedural-{i}", TriangleMesh(v, f)))
+    return out
+
+
+def _kinect_noise(depth: NDArray, valid: NDArray, range_m: float, rng: np.random.Generator):
+    """Axial noise growing with depth (a 1 m model seen from ~1.5 m) plus flying edge pixels."""
+    import cv2
+
+    sigma_m = 0.0008 + 0.0012 * (1.0 + depth) ** 2  # Azure Kinect: ~1-3 mm over the range
+    noise = rng.normal(size=depth.shape).astype(np.float32)
+    noise = cv2.GaussianBlur(noise, (3, 3), 0.7) * 1.6  # a little spatial correlation
+    out = depth + noise * sigma_m / range_m
+    d = np.where(valid, depth, 1.0).astype(np.float32)
+    jump = np.maximum(
+        np.abs(cv2.Sobel(d, cv2.CV_32F, 1, 0)), np.abs(cv2.Sobel(d, cv2.CV_32F, 0, 1))
+    )
+    flying = valid & (jump > 0.05) & (rng.random(depth.shape) < 0.3)
+    out[flying] += rng.uniform(-0.03, 0.03, int(flying.sum()))
+    return np.clip(out, 0.0, 1.0).astype(np.float32)
+
+
+def _holes(valid: NDArray, rng: np.random.Generator) -> NDArray:
+    import cv2
+
+    mask = np.zeros(valid.shape, np.uint8)
+    h, w = valid.shape
+    for _ in range(int(rng.integers(1, 5))):
+        center = (int(rng.integers(0, w)), int(rng.integers(0, h)))
+        axes = (int(rng.integers(2, w // 16 + 3)), int(rng.integers(2, h // 16 + 3)))
+        cv2.ellipse(mask, center, axes, float(rng.uniform(0, 180)), 0, 360, 1, -1)
+    return valid & (mask == 0)
+
+
+def _down_up(depth: NDArray, valid: NDArray) -> tuple[NDArray, NDArray]:
+    import cv2
+
+    h, w = depth.shape
+    small = cv2.resize(
+        np.where(valid, depth, 1.0), (w // 4, h // 4), interpolation=cv2.INTER_NEAREST
+    )
+    up = cv2.resize(small, (w, h), interpolation=cv2.INTER_LINEAR)
+    small_valid = cv2.resize(
+        valid.astype(np.uint8), (w // 4, h // 4), interpolation=cv2.INTER_NEAREST
+    )
+    up_valid = cv2.resize(small_valid, (w, h), interpolation=cv2.INTER_NEAREST).astype(bool)
+    return up.astype(np.float32), up_valid & valid
+
+
+def noisy_along_normals(
+    mesh: TriangleMesh, amplitude_m: float, rng: np.random.Generator
+) -> TriangleMesh:
+    """Every vertex moved along its normal by uniform noise in ±amplitude (the benchmark's)."""
+    n = vertex_normals(mesh.vertices_m, mesh.faces).astype(np.float64)
+    offset = rng.uniform(-amplitude_m, amplitude_m, (mesh.vertex_count, 1))
+    return mesh.with_vertices(mesh.vertices_m + n * offset)
+
+
+def make_pairs(
+    meshes: Sequence[tuple[str, TriangleMesh]],
+    config: DataConfig,
+    seed: int,
+    progress: Callable[[float], None] | None = None,
+) -> DepthPairs:
+    """Renders `poses_per_mesh * views_per_pose` degraded/clean pairs of every named mesh."""
+    if not meshes:
+        raise ValueError("meshes: need at least one source mesh")
+    rng = np.random.default_rng(seed)
+    deg, deg_valid, clean, mask, names = [], [], [], [], []
+    total = len(meshes) * config.poses_per_mesh
+    done = 0
+    for name, mesh in meshes:
+        extent = float(np.ptp(mesh.vertices_m, axis=0).max())
+        if extent <= 0:
+            raise ValueError(f"meshes[{name}]: degenerate mesh")
+        base = TriangleMesh((mesh.vertices_m - mesh.vertices_m.mean(axis=0)) / extent, mesh.faces)
+        for _ in range(config.poses_per_mesh):
+            rotated = base.with_vertices(base.vertices_m @ random_rotation(rng).T)
+            fine = subdivide_to(rotated, rng.uniform(*config.edge_fraction))
+            noisy = noisy_along_normals(fine, rng.uniform(*config.noise_fraction), rng)
+            forwards = rng.normal(size=(config.views_per_pose, 3))
+            views = make_views(noisy.vertices_m, forwards, config.resolution)
+            r_noisy = render_depth(noisy, views, with_color=False)
+            r_clean = render_depth(fine, views, with_color=False)
+            for k in range(views.count):
+                d, v = r_noisy.depth_n[k].copy(), r_noisy.valid[k].copy()
+                if rng.random() < config.kinect_probability:
+                    d = _kinect_noise(d, v, views.depth_range_m, rng)
+                if rng.random() < config.downup_probability:
+                    d, v = _down_up(d, v)
+                if rng.random() < config.hole_probability:
+                    v = _holes(v, rng)
+                d = np.where(v, d, 1.0).astype(np.float32)
+                deg.append(d)
+                deg_valid.append(v)
+                clean.append(r_clean.depth_n[k])
+                mask.append(v & r_clean.valid[k])
+                names.append(name)
+            done += 1
+            if progress is not None:
+                progress(done / total)
+    return DepthPairs(
+        np.stack(deg), np.stack(deg_valid), np.stack(clean), np.stack(mask), tuple(names)
+    )

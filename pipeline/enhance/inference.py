@@ -1,0 +1,124 @@
+"""Loading trained networks from safetensors bytes and running them on a batch of renders."""
+
+from __future__ import annotations
+
+import json
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import NDArray
+
+from pipeline.enhance.render import DepthRenders
+
+if TYPE_CHECKING:
+    import torch
+
+    from pipeline.enhance.config import EnhanceConfig
+
+
+def weights_to_bytes(state: dict[str, torch.Tensor], config: dict, half: bool = False) -> bytes:
+    """safetensors bytes of a state dict, with its model config as JSON metadata; `half`
+    stores float tensors as float16 (shipped weights: half the size, loaded back as float32)."""
+    from safetensors.torch import save
+
+    tensors = {k: v.detach().cpu().contiguous() for k, v in state.items()}
+    if half:
+        tensors = {k: v.half() if v.is_floating_point() else v for k, v in tensors.items()}
+    return save(tensors, metadata={"config": json.dumps(config)})
+
+
+def weights_from_bytes(data: bytes) -> tuple[dict[str, torch.Tensor], dict]:
+    """(state dict, model config) from safetensors bytes."""
+    from safetensors.torch import load
+
+    state = {k: v.float() if v.is_floating_point() else v for k, v in load(data).items()}
+    # The metadata sits in the JSON header after an 8-byte length; load() does not return it.
+    header_len = int.from_bytes(data[:8], "little")
+    header = json.loads(data[8 : 8 + header_len])
+    return state, json.loads(header.get("__metadata__", {}).get("config", "{}"))
+
+
+def _tuples(d: dict) -> dict:
+    return {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
+
+
+def load_regressor(data: bytes):
+    from pipeline.enhance.models.regressor import RegressorConfig, ResidualUNet
+
+    state, cfg = weights_from_bytes(data)
+    model = ResidualUNet(RegressorConfig(**_tuples(cfg)))
+    model.load_state_dict(state)
+    return model.eval()
+
+
+def load_vae(data: bytes):
+    from pipeline.enhance.models.vae import DepthVAE, VAEConfig
+
+    state, cfg = weights_from_bytes(data)
+    vae = DepthVAE(VAEConfig(**_tuples(cfg)))
+    vae.load_state_dict(state)
+    return vae.eval()
+
+
+def load_ldm(vae_data: bytes, ldm_data: bytes):
+    from pipeline.enhance.models.controlnet import ControlNet
+    from pipeline.enhance.models.unet import LatentUNet, UNetConfig
+    from pipeline.enhance.pipelines.depth_ldm import LDMModels
+
+    vae = load_vae(vae_data)
+    ldm_state, unet_cfg = weights_from_bytes(ldm_data)
+    cfg = UNetConfig(**_tuples(unet_cfg))
+    unet, control = LatentUNet(cfg), ControlNet(cfg)
+    unet.load_state_dict({k[5:]: v for k, v in ldm_state.items() if k.startswith("unet.")})
+    control.load_state_dict(
+        {k[11:]: v for k, v in ldm_state.items() if k.startswith("controlnet.")}
+    )
+    return LDMModels(vae.eval(), unet.eval(), control.eval())
+
+
+def _weights(config: EnhanceConfig, name: str) -> bytes:
+    from pipeline.enhance.weights import shipped_bytes
+
+    if config.weights is not None and name in config.weights:
+        return config.weights[name]
+    return shipped_bytes(name)
+
+
+def canny_edges(color_rgb: NDArray[np.uint8] | None, valid: NDArray[np.bool_]):
+    """(N, H, W) float32 Canny edges (0/1) of colour renders, or None without colour."""
+    if color_rgb is None:
+        return None
+    import cv2
+
+    out = np.zeros(valid.shape, np.float32)
+    for k in range(len(color_rgb)):
+        gray = cv2.cvtColor(color_rgb[k], cv2.COLOR_RGB2GRAY)
+        out[k] = (cv2.Canny(gray, 50, 150) > 0) & valid[k]
+    return out
+
+
+def run_network(renders: DepthRenders, config: EnhanceConfig) -> NDArray[np.float32]:
+    """(N, H, W) enhanced normalised depth from the chosen network, invalid pixels unchanged."""
+    import torch
+
+    from pipeline.enhance.pipelines.depth_ldm import enhance_depth_ldm
+    from pipeline.enhance.train import resolve_device
+
+    device = resolve_device(config.device)
+    d = torch.from_numpy(renders.depth_n[:, None]).to(device)
+    v = torch.from_numpy(renders.valid[:, None]).to(device)
+    edges_np = canny_edges(renders.color_rgb, renders.valid)
+    e = None if edges_np is None else torch.from_numpy(edges_np[:, None]).to(device)
+    with torch.no_grad():
+        if config.method == "regressor":
+            model = load_regressor(_weights(config, "regressor")).to(device)
+            out = model(d, v, e)
+        elif config.method == "ldm":
+            models = load_ldm(_weights(config, "vae"), _weights(config, "ldm"))
+            for part in (models.vae, models.unet, models.controlnet):
+                part.to(device)
+            out = enhance_depth_ldm(models, d, v, config.steps, config.strength, config.seed, e)
+        else:
+            raise ValueError(f"method: {config.method!r} has no network")
+    enhanced = out[:, 0].cpu().numpy().astype(np.float32)
+    return np.where(renders.valid, enhanced, renders.depth_n)

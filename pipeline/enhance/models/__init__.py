@@ -1,0 +1,1 @@
+"""Networks of the enhancer: VAE, latent U-Net, ControlNet branch, residual regressor."""

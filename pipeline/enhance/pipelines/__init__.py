@@ -1,0 +1,1 @@
+"""Sampling pipelines that turn degraded depth into enhanced depth."""

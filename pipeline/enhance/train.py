@@ -1,0 +1,386 @@
+"""Training loops: the residual regressor, the VAE, then the latent U-Net with its ControlNet.
+
+Loops are time- and step-bounded, seeded, and resumable: every `checkpoint_every` steps they hand
+a state dict to a callback (the CLI writes it) and accept one back to continue.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from pipeline.enhance.data import DataConfig, DepthPairs
+from pipeline.enhance.models.common import RESIDUAL_SCALE
+from pipeline.enhance.models.controlnet import ControlNet
+from pipeline.enhance.models.regressor import RegressorConfig, ResidualUNet
+from pipeline.enhance.models.unet import LatentUNet, UNetConfig
+from pipeline.enhance.models.vae import DepthVAE, VAEConfig
+from pipeline.enhance.schedulers.ddpm import DDPMSchedule
+
+Checkpoint = dict[str, Any]
+
+
+@dataclass(frozen=True)
+class StageBudget:
+    """Limits of one training stage."""
+
+    steps: int
+    """Most optimiser steps."""
+    minutes: float
+    """Most wall-clock minutes (counted across resumes)."""
+    lr: float = 1e-3
+    """AdamW learning rate (cosine-decayed over `steps`)."""
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """A whole training run."""
+
+    name: str
+    """Configuration name (tiny, small, large)."""
+    data: DataConfig = field(default_factory=DataConfig)
+    """Training-pair generation."""
+    regressor: RegressorConfig = field(default_factory=RegressorConfig)
+    """Baseline network size."""
+    vae: VAEConfig = field(default_factory=VAEConfig)
+    """Autoencoder size."""
+    unet: UNetConfig = field(default_factory=UNetConfig)
+    """Latent U-Net (and ControlNet copy) size."""
+    crop: int = 96
+    """Training crop side in pixels (a multiple of 8)."""
+    batch: int = 16
+    """Crops per step."""
+    regressor_budget: StageBudget = StageBudget(3000, 15.0)
+    """Regressor stage limits."""
+    vae_budget: StageBudget = StageBudget(3000, 12.0)
+    """VAE stage limits."""
+    ldm_budget: StageBudget = StageBudget(6000, 25.0, 5e-4)
+    """U-Net + ControlNet stage limits."""
+    checkpoint_every: int = 100
+    """Steps between checkpoints."""
+    kl_weight: float = 1e-4
+    """Weight of the VAE's KL term."""
+    kl_warmup_fraction: float = 0.5
+    """The KL weight ramps up from 0 over this fraction of the VAE's steps (against collapse)."""
+    ldm_max_timestep: int = 600
+    """Training timesteps are drawn below this: sampling starts part-way (strength <= 0.6),
+    so capacity is not spent on the pure-noise end of the schedule."""
+    validation_views: int = 24
+    """Validation images scored at the end of each stage."""
+
+
+CONFIGS: dict[str, TrainConfig] = {
+    "tiny": TrainConfig(
+        name="tiny",
+        data=DataConfig(resolution=64, poses_per_mesh=1, views_per_pose=2),
+        regressor=RegressorConfig(channels=(8, 16)),
+        vae=VAEConfig(channels=(8, 8, 16, 16)),
+        unet=UNetConfig(channels=(16, 16), emb_dim=32),
+        crop=32,
+        batch=2,
+        regressor_budget=StageBudget(3, 1.0),
+        vae_budget=StageBudget(3, 1.0),
+        ldm_budget=StageBudget(3, 1.0),
+        checkpoint_every=2,
+        validation_views=2,
+    ),
+    "small": TrainConfig(name="small"),
+    "large": TrainConfig(
+        name="large",
+        data=DataConfig(resolution=256, poses_per_mesh=24, views_per_pose=8),
+        regressor=RegressorConfig(channels=(32, 64, 128, 256)),
+        vae=VAEConfig(channels=(32, 64, 128, 128)),
+        unet=UNetConfig(channels=(128, 256), emb_dim=256),
+        crop=128,
+        batch=32,
+        regressor_budget=StageBudget(40000, 120.0),
+        vae_budget=StageBudget(40000, 120.0),
+        ldm_budget=StageBudget(80000, 240.0, 2e-4),
+        checkpoint_every=1000,
+        validation_views=96,
+    ),
+}
+
+
+def scaled(config: TrainConfig, factor: float) -> TrainConfig:
+    """The same configuration with every stage's step and time budget multiplied by `factor`."""
+    if factor <= 0:
+        raise ValueError(f"budget scale must be > 0, got {factor}")
+
+    def sc(b: StageBudget) -> StageBudget:
+        return replace(b, steps=max(1, int(b.steps * factor)), minutes=b.minutes * factor)
+
+    return replace(
+        config,
+        regressor_budget=sc(config.regressor_budget),
+        vae_budget=sc(config.vae_budget),
+        ldm_budget=sc(config.ldm_budget),
+    )
+
+
+class CropSampler:
+    """Random crops of the pairs with random flips and transposes, mostly on the surface."""
+
+    def __init__(self, pairs: DepthPairs, crop: int, seed: int) -> None:
+        self.deg = torch.from_numpy(pairs.degraded_n)
+        self.deg_valid = torch.from_numpy(pairs.degraded_valid)
+        self.clean = torch.from_numpy(pairs.clean_n)
+        # Self-occlusion changes make a few huge residuals that no enhancer should chase.
+        mask = pairs.loss_mask & (np.abs(pairs.clean_n - pairs.degraded_n) < 0.05)
+        self.mask = torch.from_numpy(mask)
+        self.crop = min(crop, pairs.degraded_n.shape[-1])
+        self.rng = np.random.default_rng(seed)
+
+    def batch(self, size: int, device: torch.device) -> tuple[torch.Tensor, ...]:
+        n, h, w = self.deg.shape
+        c = self.crop
+        out: list[list[torch.Tensor]] = [[], [], [], []]
+        while len(out[0]) < size:
+            i = int(self.rng.integers(n))
+            y, x = int(self.rng.integers(h - c + 1)), int(self.rng.integers(w - c + 1))
+            m = self.mask[i, y : y + c, x : x + c]
+            if m.float().mean() < 0.2:
+                continue
+            parts = [
+                t[i, y : y + c, x : x + c]
+                for t in (self.deg, self.deg_valid, self.clean, self.mask)
+            ]
+            if self.rng.random() < 0.5:
+                parts = [p.flip(-1) for p in parts]
+            if self.rng.random() < 0.5:
+                parts = [p.flip(-2) for p in parts]
+            if self.rng.random() < 0.5:
+                parts = [p.transpose(-1, -2) for p in parts]
+            for lst, p in zip(out, parts, strict=True):
+                lst.append(p)
+        return tuple(torch.stack(lst)[:, None].to(device) for lst in out)
+
+
+def masked_mse(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Mean squared error over the mask, in units of RESIDUAL_SCALE."""
+    m = mask.to(pred.dtype)
+    err = (pred - target) / RESIDUAL_SCALE
+    return (err**2 * m).sum() / m.sum().clamp_min(1.0)
+
+
+def resolve_device(name: str) -> torch.device:
+    """'auto' (CUDA when present, else CPU), 'cpu' or 'cuda'."""
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    if name not in ("cpu", "cuda"):
+        raise ValueError(f"device: {name!r} is not one of auto, cpu, cuda")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ValueError("device: cuda requested but no CUDA device is available")
+    return torch.device(name)
+
+
+def checkpoint_to_bytes(checkpoint: Checkpoint) -> bytes:
+    """A training checkpoint serialised (the caller stores it)."""
+    buf = io.BytesIO()
+    torch.save(checkpoint, buf)
+    return buf.getvalue()
+
+
+def checkpoint_from_bytes(data: bytes) -> Checkpoint:
+    """A checkpoint written by `checkpoint_to_bytes` (trusted: it holds optimiser state)."""
+    return torch.load(io.BytesIO(data), weights_only=False)
+
+
+def _learning_rate(budget: StageBudget, step: int) -> float:
+    """Linear warm-up over 5 % of the steps, then cosine decay to 5 % of the peak.
+
+    A function of the step alone, so a resumed run (even with a longer budget) continues it.
+    """
+    warm = max(1, budget.steps // 20)
+    if step < warm:
+        return budget.lr * (step + 1) / warm
+    frac = min(1.0, (step - warm) / max(1, budget.steps - warm))
+    return budget.lr * (0.05 + 0.95 * 0.5 * (1.0 + math.cos(math.pi * frac)))
+
+
+def _fit(
+    stage: str,
+    modules: dict[str, nn.Module],
+    trainable: list[nn.Parameter],
+    step_loss: Callable[[], torch.Tensor],
+    budget: StageBudget,
+    config: TrainConfig,
+    resume: Checkpoint | None,
+    on_checkpoint: Callable[[Checkpoint], None] | None,
+    progress: Callable[[float, str], None] | None,
+) -> list[dict[str, float]]:
+    """The shared optimisation loop; returns the loss log (step, seconds, loss)."""
+    opt = torch.optim.AdamW(trainable, lr=budget.lr, weight_decay=1e-4)
+    step, elapsed, log = 0, 0.0, []
+    if resume is not None and resume.get("stage") == stage:
+        for name, module in modules.items():
+            module.load_state_dict(resume["modules"][name])
+        opt.load_state_dict(resume["optimizer"])
+        step, elapsed, log = resume["step"], resume["elapsed_s"], list(resume["log"])
+        torch.set_rng_state(resume["torch_rng"])
+    start = time.monotonic() - elapsed
+    running = 0.0
+    while step < budget.steps and (time.monotonic() - start) < budget.minutes * 60:
+        for group in opt.param_groups:
+            group["lr"] = _learning_rate(budget, step)
+        loss = step_loss()
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        nn.utils.clip_grad_norm_(trainable, 1.0)
+        opt.step()
+        step += 1
+        running = loss.item() if step == 1 else 0.95 * running + 0.05 * loss.item()
+        if step % 10 == 0 or step == budget.steps:
+            log.append({"step": step, "seconds": time.monotonic() - start, "loss": running})
+        if progress is not None:
+            frac = max(step / budget.steps, (time.monotonic() - start) / (budget.minutes * 60))
+            progress(min(frac, 1.0), f"{stage} loss {running:.4f}")
+        if on_checkpoint is not None and step % config.checkpoint_every == 0:
+            on_checkpoint(
+                {
+                    "stage": stage,
+                    "modules": {k: m.state_dict() for k, m in modules.items()},
+                    "optimizer": opt.state_dict(),
+                    "step": step,
+                    "elapsed_s": time.monotonic() - start,
+                    "log": log,
+                    "torch_rng": torch.get_rng_state(),
+                }
+            )
+    return log
+
+
+def train_regressor(
+    train: DepthPairs,
+    config: TrainConfig,
+    seed: int,
+    device: torch.device,
+    resume: Checkpoint | None = None,
+    on_checkpoint: Callable[[Checkpoint], None] | None = None,
+    progress: Callable[[float, str], None] | None = None,
+) -> tuple[ResidualUNet, list[dict[str, float]]]:
+    """Trains the residual U-Net baseline on crops of `train`."""
+    torch.manual_seed(seed)
+    model = ResidualUNet(config.regressor).to(device)
+    sampler = CropSampler(train, config.crop, seed)
+
+    def step_loss() -> torch.Tensor:
+        deg, deg_valid, clean, mask = sampler.batch(config.batch, device)
+        return masked_mse(model(deg, deg_valid), clean, mask)
+
+    log = _fit(
+        "regressor",
+        {"regressor": model},
+        list(model.parameters()),
+        step_loss,
+        config.regressor_budget,
+        config,
+        resume,
+        on_checkpoint,
+        progress,
+    )
+    return model.eval(), log
+
+
+def train_vae(
+    train: DepthPairs,
+    config: TrainConfig,
+    seed: int,
+    device: torch.device,
+    resume: Checkpoint | None = None,
+    on_checkpoint: Callable[[Checkpoint], None] | None = None,
+    progress: Callable[[float, str], None] | None = None,
+) -> tuple[DepthVAE, list[dict[str, float]]]:
+    """Trains the KL autoencoder: clean depth -> latent -> clean depth, the decoder guided by
+    the degraded depth; then sets its latent scale so latents have unit variance."""
+    torch.manual_seed(seed + 1)
+    vae = DepthVAE(config.vae).to(device)
+    sampler = CropSampler(train, config.crop, seed + 1)
+
+    calls = [resume["step"] if resume is not None and resume.get("stage") == "vae" else 0]
+    warm_steps = max(1.0, config.kl_warmup_fraction * config.vae_budget.steps)
+
+    def step_loss() -> torch.Tensor:
+        deg, deg_valid, clean, mask = sampler.batch(config.batch, device)
+        posterior = vae.encode(clean, deg_valid)
+        z = posterior.sample()
+        recon = vae.decode(z, deg, deg_valid)
+        kl_weight = config.kl_weight * min(1.0, calls[0] / warm_steps)
+        calls[0] += 1
+        return masked_mse(recon, clean, mask) + kl_weight * posterior.kl().mean()
+
+    log = _fit(
+        "vae",
+        {"vae": vae},
+        list(vae.parameters()),
+        step_loss,
+        config.vae_budget,
+        config,
+        resume,
+        on_checkpoint,
+        progress,
+    )
+    vae.eval()
+    with torch.no_grad():
+        deg, deg_valid, clean, _ = sampler.batch(max(config.batch, 8), device)
+        z = vae.encode(clean, deg_valid).mean
+        vae.latent_scale.fill_(1.0 / float(z.std().clamp_min(1e-6)))
+    return vae, log
+
+
+def train_ldm(
+    train: DepthPairs,
+    vae: DepthVAE,
+    config: TrainConfig,
+    seed: int,
+    device: torch.device,
+    resume: Checkpoint | None = None,
+    on_checkpoint: Callable[[Checkpoint], None] | None = None,
+    progress: Callable[[float, str], None] | None = None,
+) -> tuple[LatentUNet, ControlNet, list[dict[str, float]]]:
+    """Trains U-Net and ControlNet together (no pretrained U-Net exists to freeze) with the
+    v-prediction objective on latents of clean depth, conditioned on the degraded depth."""
+    torch.manual_seed(seed + 2)
+    unet = LatentUNet(config.unet).to(device)
+    control = ControlNet(config.unet).to(device)
+    control.copy_encoder_from(unet)
+    schedule = DDPMSchedule()
+    alphas = torch.from_numpy(schedule.alphas_cumprod).float().to(device)
+    sampler = CropSampler(train, config.crop, seed + 2)
+    vae.eval().requires_grad_(False)
+
+    def step_loss() -> torch.Tensor:
+        deg, deg_valid, clean, _ = sampler.batch(config.batch, device)
+        with torch.no_grad():
+            z0 = vae.encode(clean, deg_valid).mean * vae.latent_scale
+        t_max = min(config.ldm_max_timestep, schedule.num_train_steps)
+        t = torch.randint(0, t_max, (z0.shape[0],), device=device)
+        noise = torch.randn_like(z0)
+        a = alphas[t].sqrt()[:, None, None, None]
+        s = (1 - alphas[t]).sqrt()[:, None, None, None]
+        zt = a * z0 + s * noise
+        v_target = a * noise - s * z0
+        residuals = control(zt, t, control.hint_of(deg, deg_valid))
+        v_pred = unet(zt, t, residuals)
+        return ((v_pred - v_target) ** 2).mean()
+
+    log = _fit(
+        "ldm",
+        {"unet": unet, "controlnet": control},
+        list(unet.parameters()) + list(control.parameters()),
+        step_loss,
+        config.ldm_budget,
+        config,
+        resume,
+        on_checkpoint,
+        progress,
+    )
+    return unet.eval(), control.eval(), log

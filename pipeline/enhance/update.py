@@ -1,0 +1,116 @@
+"""Moves a mesh's vertices along view rays to enhanced depth images (the mesh update of step 8)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from pipeline.enhance.baselines import _mean_operator
+from pipeline.enhance.render import DepthRenders, project
+from pipeline.mesh import TriangleMesh, vertex_normals
+
+
+@dataclass(frozen=True)
+class UpdateConfig:
+    """How vertices follow the enhanced depth."""
+
+    max_step_fraction: float = 0.03
+    """Largest vertex move, as a fraction of the bounding-sphere radius."""
+    min_cos: float = 0.15
+    """A view sees a vertex only if cos(angle between its normal and the view ray) is above this."""
+    tolerance_px: float = 1.0
+    """Depth-test tolerance in pixel sizes (widened on slanted surfaces)."""
+    unseen_iterations: int = 60
+    """Smoothing iterations for vertices no view sees (seen vertices held fixed)."""
+    normal_smoothing: int = 2
+    """Neighbour-averaging passes over vertex normals before visibility (noisy normals)."""
+
+
+def _bilinear(
+    image: NDArray[np.float32],
+    valid: NDArray[np.bool_],
+    cols: NDArray,
+    rows: NDArray,
+    max_spread: float | NDArray = np.inf,
+):
+    """Bilinear lookup where the four neighbours are valid and on one surface (spread below
+    `max_spread`), nearest otherwise; returns values and whether they are valid."""
+    h, w = image.shape
+    c0 = np.clip(np.floor(cols).astype(np.int64), 0, w - 2)
+    r0 = np.clip(np.floor(rows).astype(np.int64), 0, h - 2)
+    fc = np.clip(cols - c0, 0.0, 1.0)
+    fr = np.clip(rows - r0, 0.0, 1.0)
+    q = [image[r0, c0], image[r0, c0 + 1], image[r0 + 1, c0], image[r0 + 1, c0 + 1]]
+    ok = valid[r0, c0] & valid[r0, c0 + 1] & valid[r0 + 1, c0] & valid[r0 + 1, c0 + 1]
+    ok &= (np.maximum.reduce(q) - np.minimum.reduce(q)) < max_spread
+    bil = (q[0] * (1 - fc) + q[1] * fc) * (1 - fr) + (q[2] * (1 - fc) + q[3] * fc) * fr
+    nc = np.clip(np.rint(cols).astype(np.int64), 0, w - 1)
+    nr = np.clip(np.rint(rows).astype(np.int64), 0, h - 1)
+    return np.where(ok, bil, image[nr, nc]), np.where(ok, True, valid[nr, nc])
+
+
+def update_vertices(
+    mesh: TriangleMesh,
+    renders: DepthRenders,
+    enhanced_depth_n: NDArray[np.float32],
+    config: UpdateConfig,
+) -> tuple[TriangleMesh, NDArray[np.bool_]]:
+    """The mesh with vertices moved to the enhanced depth, and the (V,) mask of seen vertices.
+
+    `renders` are the mesh's own renders (for the visibility depth test); `enhanced_depth_n`
+    (N, H, W) the enhanced normalised depth of the same views.
+    """
+    views = renders.views
+    if enhanced_depth_n.shape != renders.depth_n.shape:
+        raise ValueError(
+            f"enhanced_depth_n has shape {enhanced_depth_n.shape}, renders {renders.depth_n.shape}"
+        )
+    v = mesh.vertices_m
+    mean_op = _mean_operator(mesh.faces, mesh.vertex_count)
+    normals = vertex_normals(v, mesh.faces).astype(np.float64)
+    for _ in range(config.normal_smoothing):
+        normals = mean_op @ normals
+        normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+    pix, depth_n = project(v, views)
+    res = views.resolution
+    cap = config.max_step_fraction * views.half_extent_m
+    shift = np.zeros_like(v)
+    weight = np.zeros(len(v))
+    for k in range(views.count):
+        cos = -normals @ views.forwards[k]
+        cols, rows = pix[k, :, 0], pix[k, :, 1]
+        inside = (cols >= 0) & (cols <= res - 1) & (rows >= 0) & (rows <= res - 1)
+        seen_depth, seen_ok = _bilinear(renders.depth_n[k], renders.valid[k], cols, rows)
+        tan = np.sqrt(np.maximum(1.0 - cos**2, 0.0)) / np.maximum(cos, 1e-3)
+        tol = config.tolerance_px * (1.0 + tan) / res
+        visible = inside & seen_ok & (cos > config.min_cos)
+        visible &= np.abs(seen_depth - depth_n[k]) < tol
+        target, target_ok = _bilinear(
+            enhanced_depth_n[k], renders.valid[k], cols, rows, max_spread=3.0 * tol
+        )
+        step = (target - depth_n[k]) * views.depth_range_m
+        # A step beyond the cap means the lookup landed on another surface: not this view's.
+        visible &= target_ok & (np.abs(step) < cap)
+        w = np.where(visible, cos**2, 0.0)
+        shift += (w * step)[:, None] * views.forwards[k][None, :]
+        weight += w
+    seen = weight > 0
+    shift[seen] /= weight[seen, None]
+    length = np.linalg.norm(shift, axis=1)
+    shift *= np.minimum(1.0, cap / np.maximum(length, 1e-30))[:, None]
+    moved = v + shift
+    moved = _smooth_unseen(moved, seen, mean_op, config.unseen_iterations)
+    return mesh.with_vertices(moved), seen
+
+
+def _smooth_unseen(v: NDArray, seen: NDArray[np.bool_], mean_op, iterations: int) -> NDArray:
+    """Jacobi smoothing of the unseen vertices towards their neighbours, seen ones fixed."""
+    out = v.copy()
+    unseen = ~seen
+    if not unseen.any():
+        return out
+    for _ in range(iterations):
+        out[unseen] = (mean_op @ out)[unseen]
+    return out

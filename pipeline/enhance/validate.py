@@ -1,0 +1,109 @@
+"""Validation figures on held-apart renders: depth RMSE overall and in a band at depth edges.
+
+Figures are in thousandths of the view's depth range (a 1 m bunny's range is about 1.6 m, so
+1.0 here is about 1.6 mm).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+import torch
+from numpy.typing import NDArray
+
+from pipeline.enhance.data import DepthPairs
+from pipeline.enhance.metrics import depth_edge_band
+from pipeline.enhance.models.vae import DepthVAE, padded
+
+
+def _subset(pairs: DepthPairs, count: int) -> NDArray[np.int64]:
+    n = len(pairs.source)
+    return np.unique(np.linspace(0, n - 1, min(count, n)).round().astype(np.int64))
+
+
+def depth_scores(pred: NDArray, pairs: DepthPairs, idx: NDArray[np.int64]) -> dict[str, float]:
+    """RMSE and 3-pixel edge-band RMSE (thousandths of depth range) of `pred` (n, H, W)."""
+    sq, band_sq, n_px, n_band = 0.0, 0.0, 0, 0
+    for j, i in enumerate(idx):
+        mask = pairs.loss_mask[i] & (np.abs(pairs.clean_n[i] - pairs.degraded_n[i]) < 0.05)
+        err = (pred[j] - pairs.clean_n[i])[mask]
+        sq += float(np.sum(err.astype(np.float64) ** 2))
+        n_px += err.size
+        band = depth_edge_band(pairs.clean_n[i], pairs.loss_mask[i], 0.02) & mask
+        e2 = (pred[j] - pairs.clean_n[i])[band]
+        band_sq += float(np.sum(e2.astype(np.float64) ** 2))
+        n_band += e2.size
+    return {
+        "rmse_permille": 1e3 * float(np.sqrt(sq / max(n_px, 1))),
+        "edge_rmse_permille": 1e3 * float(np.sqrt(band_sq / max(n_band, 1))),
+    }
+
+
+def _batched(
+    fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
+    pairs: DepthPairs,
+    idx: NDArray[np.int64],
+    device: torch.device,
+    batch: int = 6,
+) -> NDArray[np.float32]:
+    outs = []
+    with torch.no_grad():
+        for s in range(0, len(idx), batch):
+            sel = idx[s : s + batch]
+            d = torch.from_numpy(pairs.degraded_n[sel][:, None]).to(device)
+            v = torch.from_numpy(pairs.degraded_valid[sel][:, None]).to(device)
+            outs.append(fn(d, v)[:, 0].cpu().numpy())
+    return np.concatenate(outs)
+
+
+def validate_regressor(model, pairs: DepthPairs, count: int, device: torch.device) -> dict:
+    """Raw and regressed depth scores."""
+    idx = _subset(pairs, count)
+    model.eval()
+    return {
+        "views": len(idx),
+        "raw": depth_scores(pairs.degraded_n[idx], pairs, idx),
+        "regressor": depth_scores(_batched(model, pairs, idx, device), pairs, idx),
+    }
+
+
+def validate_ldm(
+    nets: tuple | None, vae: DepthVAE, pairs: DepthPairs, count: int, device: torch.device
+) -> dict:
+    """VAE figures (clean latent decoded: its ceiling; degraded latent decoded), and with
+    `nets` = (unet, controlnet) the sampled LDM at 1, 4 and 10 steps."""
+    from pipeline.enhance.pipelines.depth_ldm import LDMModels, enhance_depth_ldm
+
+    idx = _subset(pairs, count)
+    vae.eval()
+    out: dict = {"views": len(idx), "raw": depth_scores(pairs.degraded_n[idx], pairs, idx)}
+
+    def decode_of(source: NDArray[np.float32]):
+        def fn(d: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+            # The latent of `source` (clean or degraded), decoded with the degraded guide.
+            sel = _current.pop(0)
+            x = torch.from_numpy(source[sel][:, None]).to(device)
+            xp, vp, (h, w) = padded(x, v)
+            dp, _, _ = padded(d, v)
+            return vae.decode(vae.encode(xp, vp).mean, dp, vp)[..., :h, :w]
+
+        return fn
+
+    for name, source in (("vae_clean_latent", pairs.clean_n), ("vae_degraded_latent", None)):
+        _current = [idx[s : s + 6] for s in range(0, len(idx), 6)]
+        src = pairs.degraded_n if source is None else source
+        out[name] = depth_scores(_batched(decode_of(src), pairs, idx, device), pairs, idx)
+    if nets is not None:
+        models = LDMModels(vae, nets[0].eval(), nets[1].eval())
+        runs = [(1, 0.5), (4, 0.5), (10, 0.5), (4, 0.3), (4, 0.7)]
+        for steps, strength in runs:
+
+            def sample(
+                d: torch.Tensor, v: torch.Tensor, n: int = steps, s: float = strength
+            ) -> torch.Tensor:
+                return enhance_depth_ldm(models, d, v, n, s, 0)
+
+            pred = _batched(sample, pairs, idx, device)
+            out[f"ldm_{steps}_steps_strength_{strength}"] = depth_scores(pred, pairs, idx)
+    return out

@@ -1,0 +1,1 @@
+"""File I/O of the pipeline: captures in, meshes and reports out. Nothing else touches files."""

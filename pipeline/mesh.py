@@ -1,0 +1,56 @@
+"""The triangle mesh that stages pass around."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+
+@dataclass(frozen=True)
+class TriangleMesh:
+    """An indexed triangle mesh in metres (world frame unless said otherwise)."""
+
+    vertices_m: NDArray[np.float64]
+    """(V, 3) vertex positions, metres."""
+    faces: NDArray[np.int32]
+    """(F, 3) vertex indices, counter-clockwise seen from outside."""
+    vertex_colors: NDArray[np.uint8] | None = None
+    """(V, 3) sRGB colours, or None."""
+    vertex_normals: NDArray[np.float32] | None = None
+    """(V, 3) unit normals, or None."""
+
+    @property
+    def vertex_count(self) -> int:
+        return int(self.vertices_m.shape[0])
+
+    @property
+    def face_count(self) -> int:
+        return int(self.faces.shape[0])
+
+    def with_vertices(self, vertices_m: NDArray[np.float64]) -> TriangleMesh:
+        """The same connectivity and colours at new positions (normals dropped: they changed)."""
+        return replace(self, vertices_m=vertices_m, vertex_normals=None)
+
+
+def face_normals(vertices_m: NDArray[np.float64], faces: NDArray[np.int32]) -> NDArray[np.float64]:
+    """(F, 3) unit face normals (zero for degenerate faces)."""
+    tri = vertices_m[faces]
+    normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    length = np.linalg.norm(normals, axis=1, keepdims=True)
+    return np.divide(normals, length, out=np.zeros_like(normals), where=length > 0)
+
+
+def vertex_normals(
+    vertices_m: NDArray[np.float64], faces: NDArray[np.int32]
+) -> NDArray[np.float32]:
+    """(V, 3) area-weighted unit vertex normals."""
+    tri = vertices_m[faces]
+    weighted = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    normals = np.zeros_like(vertices_m)
+    for corner in range(3):
+        np.add.at(normals, faces[:, corner], weighted)
+    length = np.linalg.norm(normals, axis=1, keepdims=True)
+    unit = np.divide(normals, length, out=np.zeros_like(normals), where=length > 0)
+    return unit.astype(np.float32)

@@ -1,0 +1,122 @@
+"""Mesh checks and repairs that remeshing kernels need: no degenerate or duplicate faces,
+manifold edges and vertices, no tiny pieces. Vectorised numpy on (V, 3) / (F, 3) arrays.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+Faces = NDArray[np.int32]
+
+
+def triangle_angles_deg(vertices_m: FloatArray, faces: Faces) -> FloatArray:
+    """(F, 3) interior angle at each corner of each face, degrees (0 for degenerate)."""
+    tri = vertices_m[faces]
+    angles = np.zeros(faces.shape, dtype=np.float64)
+    for c in range(3):
+        u = tri[:, (c + 1) % 3] - tri[:, c]
+        w = tri[:, (c + 2) % 3] - tri[:, c]
+        denom = np.linalg.norm(u, axis=1) * np.linalg.norm(w, axis=1)
+        cos = np.divide(np.sum(u * w, axis=1), denom, out=np.ones(len(faces)), where=denom > 0)
+        angles[:, c] = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    return angles
+
+
+def face_areas(vertices_m: FloatArray, faces: Faces) -> FloatArray:
+    """(F,) triangle areas, square metres."""
+    tri = vertices_m[faces]
+    return 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+
+
+def edge_table(faces: Faces) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Undirected edges (E, 2) sorted per row, and (F, 3) the edge opposite each corner."""
+    a = np.concatenate([faces[:, 1], faces[:, 2], faces[:, 0]]).astype(np.int64)
+    b = np.concatenate([faces[:, 2], faces[:, 0], faces[:, 1]]).astype(np.int64)
+    low, high = np.minimum(a, b), np.maximum(a, b)
+    stride = int(high.max(initial=0)) + 1
+    keys, inverse = np.unique(low * stride + high, return_inverse=True)
+    edges = np.column_stack([keys // stride, keys % stride])
+    return edges, inverse.reshape(3, -1).T
+
+
+def compact(vertices_m: FloatArray, faces: Faces) -> tuple[FloatArray, Faces]:
+    """Drop unreferenced vertices and renumber faces."""
+    used = np.zeros(len(vertices_m), dtype=bool)
+    used[faces.ravel()] = True
+    new_index = np.cumsum(used) - 1
+    return vertices_m[used], new_index[faces].astype(np.int32)
+
+
+def face_components(faces: Faces, vertex_count: int) -> NDArray[np.int64]:
+    """(F,) connected-component label of each face (faces sharing a vertex are connected)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    rows = np.repeat(np.arange(len(faces)), 3)
+    incidence = coo_matrix((np.ones(len(rows)), (rows, faces.ravel())),
+                           shape=(len(faces), vertex_count)).tocsr()
+    _, labels = connected_components(incidence @ incidence.T, directed=False)
+    return np.asarray(labels, dtype=np.int64)
+
+
+def drop_small_components(vertices_m: FloatArray, faces: Faces, min_share: float
+                          ) -> tuple[FloatArray, Faces]:
+    """Remove connected pieces with fewer faces than min_share of the largest piece's."""
+    if len(faces) == 0:
+        return vertices_m, faces
+    labels = face_components(faces, len(vertices_m))
+    sizes = np.bincount(labels)
+    return compact(vertices_m, faces[sizes[labels] >= min_share * sizes.max()])
+
+
+def non_manifold_vertices(faces: Faces, vertex_count: int) -> NDArray[np.bool_]:
+    """(V,) vertices whose faces form more than one fan (open bow-ties and the like).
+
+    Around a vertex with one fan, incident edges number faces (closed) or faces + 1 (open).
+    """
+    edges, _ = edge_table(faces)
+    edge_count = np.bincount(edges.ravel(), minlength=vertex_count)
+    face_count = np.bincount(faces.ravel(), minlength=vertex_count)
+    return (edge_count - face_count) > 1
+
+
+def repair(vertices_m: FloatArray, faces: Faces, min_component_share: float = 0.0,
+           rounds: int = 4) -> tuple[FloatArray, Faces, dict[str, int]]:
+    """A mesh a remeshing kernel can take: degenerate and duplicate faces removed, faces on
+    non-manifold edges and around non-manifold vertices removed, small pieces dropped.
+
+    Returns the repaired (V, 3), (F, 3) and counts of what was removed.
+    """
+    vertices = np.asarray(vertices_m, dtype=np.float64)
+    faces = np.asarray(faces, dtype=np.int64)
+    if faces.ndim != 2 or faces.shape[1] != 3:
+        raise ValueError(f"faces: expected (F, 3), got {faces.shape}")
+    if len(faces) and (faces.min() < 0 or faces.max() >= len(vertices)):
+        raise ValueError("faces: index out of range of vertices_m")
+    if not np.all(np.isfinite(vertices)):
+        raise ValueError("vertices_m: not all finite")
+    removed = {"degenerate": 0, "duplicate": 0, "non_manifold": 0}
+    distinct = ((faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2])
+                & (faces[:, 2] != faces[:, 0]))
+    area_ok = face_areas(vertices, faces.astype(np.int32)) > 1e-14
+    removed["degenerate"] = int(np.sum(~(distinct & area_ok)))
+    faces = faces[distinct & area_ok]
+    _, first = np.unique(np.sort(faces, axis=1), axis=0, return_index=True)
+    removed["duplicate"] = len(faces) - len(first)
+    faces = faces[np.sort(first)]
+    for _ in range(rounds):
+        _, opposite = edge_table(faces.astype(np.int32))
+        uses = np.bincount(opposite.ravel(), minlength=int(opposite.max(initial=0)) + 1)
+        bad_face = (uses[opposite] > 2).any(axis=1)
+        bad_vertex = non_manifold_vertices(faces.astype(np.int32), len(vertices))
+        bad_face |= bad_vertex[faces].any(axis=1)
+        if not bad_face.any():
+            break
+        removed["non_manifold"] += int(bad_face.sum())
+        faces = faces[~bad_face]
+    out_v, out_f = compact(vertices, faces.astype(np.int32))
+    if min_component_share > 0:
+        out_v, out_f = drop_small_components(out_v, out_f, min_component_share)
+    return out_v, out_f, removed

@@ -1,0 +1,154 @@
+"""Remeshing (DESIGN step 7): isotropic remeshing to a target edge length, angle criteria.
+
+The kernel is gpytoolbox's ``remesh_botsch`` (edge split, collapse, flip, tangential
+relaxation, projection back onto the input). It is native code that has crashed the whole
+process on some inputs (cow.obj), so the mesh is repaired first and the kernel runs in a
+child process: a crash, an error or a timeout there leaves the caller running, with the
+repaired input returned and a warning in the stats. Minimum/maximum angle criteria are then
+enforced by :mod:`pipeline.angle_cleanup`.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from pipeline.angle_cleanup import enforce_angles
+from pipeline.mesh import TriangleMesh
+from pipeline.mesh_repair import repair, triangle_angles_deg
+
+FloatArray = NDArray[np.float64]
+Faces = NDArray[np.int32]
+
+
+@dataclass(frozen=True)
+class RemeshConfig:
+    """How the mesh is remeshed."""
+
+    target_edge_length_m: float = 0.012
+    """Edge length the remeshing aims for, metres."""
+    iterations: int = 2
+    """Split/collapse/flip/relax rounds of the kernel."""
+    min_angle_deg: float = 20.0
+    """Triangles with a smaller angle are collapsed away after remeshing."""
+    max_angle_deg: float = 120.0
+    """Triangles with a larger angle get their long edge flipped after remeshing."""
+    cleanup_passes: int = 3
+    """Rounds of the angle clean-up."""
+    min_component_share: float = 0.01
+    """Pieces smaller than this share of the largest (in faces) are dropped first."""
+    isolate: bool = True
+    """Run the native kernel in a child process so a crash cannot take the caller down."""
+    timeout_s: float = 300.0
+    """The child is stopped after this long and the input is kept."""
+
+    def __post_init__(self) -> None:
+        if not self.target_edge_length_m > 0:
+            raise ValueError("remesh: target_edge_length_m must be > 0")
+        if self.iterations < 0 or self.cleanup_passes < 0:
+            raise ValueError("remesh: iterations and cleanup_passes must be >= 0")
+        if not 0 <= self.min_angle_deg < 60 < self.max_angle_deg <= 180:
+            raise ValueError("remesh: need 0 <= min_angle_deg < 60 < max_angle_deg <= 180")
+        if not self.timeout_s > 0:
+            raise ValueError("remesh: timeout_s must be > 0")
+
+
+def _kernel(vertices_m: FloatArray, faces: Faces, edge_m: float, iterations: int
+            ) -> tuple[FloatArray, Faces]:
+    import gpytoolbox
+
+    v, f = gpytoolbox.remesh_botsch(vertices_m.astype(np.float64),
+                                    faces.astype(np.int32), i=iterations, h=edge_m,
+                                    project=True)
+    return np.asarray(v, dtype=np.float64), np.asarray(f, dtype=np.int32)
+
+
+def _child_main() -> None:
+    """Child process body (``python -m pipeline.remesh``): arrays in on stdin as .npz,
+    the remeshed arrays out on stdout as .npz; any failure exits non-zero."""
+    with np.load(io.BytesIO(sys.stdin.buffer.read()), allow_pickle=False) as data:
+        vertices, faces = _kernel(data["vertices_m"], data["faces"],
+                                  float(data["edge_m"]), int(data["iterations"]))
+    out = io.BytesIO()
+    np.savez(out, vertices_m=vertices, faces=faces)
+    sys.stdout.buffer.write(out.getvalue())
+
+
+def run_isolated(vertices_m: FloatArray, faces: Faces, edge_m: float, iterations: int,
+                 timeout_s: float) -> tuple[tuple[FloatArray, Faces] | None, str | None]:
+    """The kernel in a child interpreter: (result, None), or (None, why it failed).
+
+    A plain child process rather than multiprocessing: it never re-imports the caller's
+    main module, so it works from any script, worker or test runner.
+    """
+    request = io.BytesIO()
+    np.savez(request, vertices_m=np.asarray(vertices_m, np.float64),
+             faces=np.asarray(faces, np.int32), edge_m=np.float64(edge_m),
+             iterations=np.int64(iterations))
+    package_root = str(Path(__file__).resolve().parents[1])
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (package_root, env.get("PYTHONPATH")) if p)
+    try:
+        done = subprocess.run([sys.executable, "-m", "pipeline.remesh"],
+                              input=request.getvalue(), capture_output=True, env=env,
+                              timeout=timeout_s, check=False)
+    except subprocess.TimeoutExpired:
+        return None, f"remesh kernel timed out after {timeout_s:g} s"
+    if done.returncode < 0:
+        return None, f"remesh kernel crashed (signal {-done.returncode})"
+    if done.returncode != 0:
+        lines = done.stderr.decode(errors="replace").strip().splitlines()
+        return None, f"remesh kernel failed: {lines[-1] if lines else done.returncode}"
+    try:
+        with np.load(io.BytesIO(done.stdout), allow_pickle=False) as data:
+            return (np.asarray(data["vertices_m"], np.float64),
+                    np.asarray(data["faces"], np.int32)), None
+    except (ValueError, OSError, KeyError) as exc:
+        return None, f"remesh kernel returned no mesh ({exc})"
+
+
+def angle_stats(vertices_m: FloatArray, faces: Faces, config: RemeshConfig) -> dict[str, float]:
+    """Smallest and largest angle, and the shares of faces outside the criteria."""
+    if len(faces) == 0:
+        return {"min_angle_deg": 0.0, "max_angle_deg": 0.0, "share_below_min": 0.0,
+                "share_above_max": 0.0}
+    angles = triangle_angles_deg(vertices_m, faces)
+    return {"min_angle_deg": float(angles.min()), "max_angle_deg": float(angles.max()),
+            "share_below_min": float(np.mean(angles.min(axis=1) < config.min_angle_deg)),
+            "share_above_max": float(np.mean(angles.max(axis=1) > config.max_angle_deg))}
+
+
+def remesh(mesh: TriangleMesh, config: RemeshConfig) -> tuple[TriangleMesh, dict[str, Any]]:
+    """The mesh remeshed isotropically; stats hold repairs, angle figures and any warning."""
+    vertices, faces, removed = repair(mesh.vertices_m, mesh.faces, config.min_component_share)
+    if len(faces) == 0:
+        raise ValueError("mesh: nothing left to remesh after repair (degenerate input)")
+    stats: dict[str, Any] = {"repair_removed_faces": removed, "warning": None}
+    if config.iterations > 0:
+        if config.isolate:
+            result, warning = run_isolated(vertices, faces, config.target_edge_length_m,
+                                           config.iterations, config.timeout_s)
+        else:
+            result, warning = _kernel(vertices, faces, config.target_edge_length_m,
+                                      config.iterations), None
+        if result is not None:
+            vertices, faces = result
+        stats["warning"] = warning and f"{warning}; kept the unremeshed mesh"
+    stats["angles_before_cleanup"] = angle_stats(vertices, faces, config)
+    vertices, faces, ops = enforce_angles(vertices, faces, config.min_angle_deg,
+                                          config.max_angle_deg, config.cleanup_passes)
+    stats["angle_cleanup"] = ops
+    stats["angles"] = angle_stats(vertices, faces, config)
+    return TriangleMesh(vertices_m=vertices, faces=faces), stats
+
+
+if __name__ == "__main__":
+    _child_main()

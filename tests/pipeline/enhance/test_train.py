@@ -1,0 +1,114 @@
+"""A tiny configuration trains for a few steps, resumes, and its weights enhance a mesh."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from pipeline.enhance import EnhanceConfig, enhance_mesh
+from pipeline.enhance.data import DataConfig, make_pairs, procedural_meshes
+from pipeline.enhance.inference import weights_from_bytes, weights_to_bytes
+from pipeline.enhance.train import (
+    CONFIGS,
+    StageBudget,
+    checkpoint_from_bytes,
+    checkpoint_to_bytes,
+    train_ldm,
+    train_regressor,
+    train_vae,
+)
+from tests.pipeline.enhance.conftest import sphere
+
+TINY = CONFIGS["tiny"]
+
+
+@pytest.fixture(scope="module")
+def pairs():
+    meshes = procedural_meshes(np.random.default_rng(0), 2)
+    return make_pairs(meshes, DataConfig(resolution=48, poses_per_mesh=1, views_per_pose=2), 0)
+
+
+def test_pairs_are_degraded_copies(pairs):
+    assert pairs.degraded_n.shape == pairs.clean_n.shape == (4, 48, 48)
+    diff = np.abs(pairs.degraded_n - pairs.clean_n)[pairs.loss_mask]
+    assert 0 < np.median(diff) < 0.05
+    assert pairs.source == ("procedural-0",) * 2 + ("procedural-1",) * 2
+
+
+def test_regressor_trains_and_resumes_where_it_stopped(pairs):
+    saved = []
+    cfg = replace(TINY, regressor_budget=StageBudget(4, 1.0), checkpoint_every=2)
+    _, log = train_regressor(pairs, cfg, 0, torch.device("cpu"), on_checkpoint=saved.append)
+    assert [c["step"] for c in saved] == [2, 4]
+    assert all(np.isfinite(e["loss"]) for e in log)
+    cfg6 = replace(cfg, regressor_budget=StageBudget(6, 1.0))
+    more = []
+    stored = checkpoint_from_bytes(checkpoint_to_bytes(saved[0]))  # as the CLI stores it
+    train_regressor(pairs, cfg6, 0, torch.device("cpu"), resume=stored, on_checkpoint=more.append)
+    assert [c["step"] for c in more] == [4, 6]
+
+
+def test_weights_round_trip_with_config():
+    state = {"a": torch.arange(3.0)}
+    got, cfg = weights_from_bytes(weights_to_bytes(state, {"channels": [8, 16]}))
+    assert torch.equal(got["a"], state["a"]) and cfg == {"channels": [8, 16]}
+
+
+def test_tiny_models_enhance_a_mesh_deterministically(pairs):
+    dev = torch.device("cpu")
+    reg, _ = train_regressor(pairs, TINY, 0, dev)
+    vae, _ = train_vae(pairs, TINY, 0, dev)
+    unet, control, _ = train_ldm(pairs, vae, TINY, 0, dev)
+    ldm_state = {f"unet.{k}": v for k, v in unet.state_dict().items()}
+    ldm_state.update({f"controlnet.{k}": v for k, v in control.state_dict().items()})
+    weights = {
+        "regressor": weights_to_bytes(
+            reg.state_dict(), {"channels": list(TINY.regressor.channels)}
+        ),
+        "vae": weights_to_bytes(vae.state_dict(), {"channels": list(TINY.vae.channels)}),
+        "ldm": weights_to_bytes(
+            ldm_state, {"channels": list(TINY.unet.channels), "emb_dim": TINY.unet.emb_dim}
+        ),
+    }
+    mesh = sphere(0.5, 12)
+    base = EnhanceConfig(views=6, resolution=32, steps=2, weights=weights)
+    a = enhance_mesh(mesh, base)
+    b = enhance_mesh(mesh, base)
+    assert np.array_equal(a.vertices_m, b.vertices_m)
+    assert np.array_equal(a.faces, mesh.faces)
+    c = enhance_mesh(mesh, replace(base, method="regressor"))
+    assert np.all(np.isfinite(c.vertices_m))
+    # Moves are capped: nothing leaves the neighbourhood of the sphere.
+    r = np.linalg.norm(a.vertices_m, axis=1)
+    assert np.all(np.abs(r - np.linalg.norm(mesh.vertices_m, axis=1)) < 0.04)
+
+
+def test_bad_config_is_named():
+    mesh = sphere(0.5, 8)
+    with pytest.raises(ValueError, match="method"):
+        enhance_mesh(mesh, EnhanceConfig(method="magic"))
+    with pytest.raises(ValueError, match="strength"):
+        enhance_mesh(mesh, EnhanceConfig(strength=0.0))
+
+
+def test_half_precision_weights_load_as_float32():
+    state = {"w": torch.tensor([0.1, 1.0 / 3.0]), "n": torch.tensor([3])}
+    got, _ = weights_from_bytes(weights_to_bytes(state, {}, half=True))
+    assert got["w"].dtype == torch.float32 and got["n"].dtype == torch.int64
+    assert torch.allclose(got["w"], state["w"], rtol=1e-3)
+
+
+def test_vae_weights_reload_with_their_config():
+    """What `volumesh train --resume` does with a finished VAE stage."""
+    from dataclasses import asdict
+
+    from pipeline.enhance.inference import load_vae
+    from pipeline.enhance.models.vae import DepthVAE, VAEConfig
+
+    cfg = VAEConfig(channels=(8, 8, 16, 16), initial_logvar=-3.0)
+    vae = DepthVAE(cfg)
+    vae.latent_scale.fill_(2.5)
+    again = load_vae(weights_to_bytes(vae.state_dict(), asdict(cfg)))
+    assert float(again.latent_scale) == 2.5
+    assert torch.equal(again.to_moments.weight, vae.to_moments.weight)

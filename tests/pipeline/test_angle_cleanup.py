@@ -1,0 +1,71 @@
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.angle_cleanup import (
+    collapse_needles,
+    drop_boundary_slivers,
+    enforce_angles,
+    flip_caps,
+)
+from pipeline.mesh_repair import edge_table, triangle_angles_deg
+
+
+def _grid(n: int = 6) -> tuple[np.ndarray, np.ndarray]:
+    """A flat n x n grid of squares split into two triangles each, z = 0."""
+    ys, xs = np.mgrid[0:n + 1, 0:n + 1]
+    v = np.column_stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)]).astype(float)
+    faces = []
+    for y in range(n):
+        for x in range(n):
+            a = y * (n + 1) + x
+            b, c, d = a + 1, a + n + 1, a + n + 2
+            faces += [[a, b, d], [a, d, c]]
+    return v, np.array(faces, dtype=np.int32)
+
+
+def test_a_cap_gets_its_long_edge_flipped() -> None:
+    # Two triangles sharing a long edge, both with a ~150 degree angle.
+    v = np.array([[0, 0, 0], [2, 0, 0], [1, 0.15, 0], [1, -0.15, 0]], dtype=float)
+    f = np.array([[0, 1, 2], [1, 0, 3]], dtype=np.int32)
+    out, flips = flip_caps(v, f, 120.0)
+    assert flips == 1
+    assert triangle_angles_deg(v, out).max() < triangle_angles_deg(v, f).max()
+    edges, _ = edge_table(out)
+    assert [2, 3] in edges.tolist()
+    # Orientation kept: both faces still face +z.
+    tri = v[out]
+    assert np.all(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])[:, 2] > 0)
+
+
+def test_a_needle_gets_its_short_edge_collapsed() -> None:
+    v, f = _grid()
+    centre = 3 * 7 + 3
+    v[centre + 1] = v[centre] + [0.05, 0.0, 0.0]  # squeeze the edge right of the centre
+    assert triangle_angles_deg(v, f).min() < 5
+    out_v, out_f, collapses = collapse_needles(v, f, 20.0)
+    assert collapses >= 1
+    assert triangle_angles_deg(out_v, out_f).min() > triangle_angles_deg(v, f).min()
+    # Still a manifold disc: interior edges have two faces, boundary edges one.
+    _, opposite = edge_table(out_f)
+    assert set(np.bincount(opposite.ravel()).tolist()) <= {1, 2}
+
+
+def test_enforce_angles_leaves_good_meshes_alone() -> None:
+    v, f = _grid()
+    out_v, out_f, stats = enforce_angles(v, f, 20.0, 120.0)
+    assert stats == {"flips": 0, "collapses": 0, "boundary_drops": 0}
+    assert len(out_f) == len(f) and np.allclose(out_v, v)
+
+
+def test_boundary_slivers_are_dropped_or_fixed() -> None:
+    v, f = _grid(3)
+    # A flat sliver glued under the grid's bottom edge (1, 2): an ear on the boundary.
+    v = np.vstack([v, [[1.5, -0.02, 0.0]]])
+    f = np.vstack([f, [[2, 1, 16]]]).astype(np.int32)
+    kept, drops = drop_boundary_slivers(v, f, 20.0, 120.0)
+    assert drops == 1 and len(kept) == len(f) - 1 and [2, 1, 16] not in kept.tolist()
+    out_v, out_f, stats = enforce_angles(v, f, 20.0, 120.0)
+    assert sum(stats.values()) >= 1
+    angles = triangle_angles_deg(out_v, out_f)
+    assert angles.min() >= 20.0 - 1e-9 and angles.max() <= 120.0 + 1e-9

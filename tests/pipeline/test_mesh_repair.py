@@ -1,0 +1,71 @@
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from pipeline.mesh_repair import (
+    drop_small_components,
+    edge_table,
+    non_manifold_vertices,
+    repair,
+    triangle_angles_deg,
+)
+
+
+def _box() -> tuple[np.ndarray, np.ndarray]:
+    box = trimesh.creation.box()
+    return np.asarray(box.vertices, dtype=float), np.asarray(box.faces, dtype=np.int32)
+
+
+def test_edge_table_lists_each_edge_once_and_opposite_corners() -> None:
+    v, f = _box()
+    edges, opposite = edge_table(f)
+    assert len(edges) == 18  # 12 box edges + 6 face diagonals
+    assert np.all(np.bincount(opposite.ravel()) == 2)
+    for face, row in zip(f, opposite, strict=True):
+        for corner in range(3):
+            pair = sorted((face[(corner + 1) % 3], face[(corner + 2) % 3]))
+            assert list(edges[row[corner]]) == pair
+
+
+def test_angles_of_a_right_triangle() -> None:
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], dtype=float)
+    np.testing.assert_allclose(triangle_angles_deg(v, np.array([[0, 1, 2]], np.int32)),
+                               [[90, 45, 45]])
+
+
+def test_repair_removes_degenerate_duplicate_and_non_manifold_faces() -> None:
+    v, f = _box()
+    v = np.vstack([v, [[0, 0, 2], [5, 5, 5]]])
+    fin = [[0, 1, 8]]  # a third face on the box edge (0, 1)
+    faces = np.vstack([f, f[:2], [[2, 2, 3]], fin]).astype(np.int32)
+    out_v, out_f, removed = repair(v, faces)
+    assert removed["duplicate"] == 2 and removed["degenerate"] == 1
+    assert removed["non_manifold"] >= 3
+    _, opposite = edge_table(out_f)
+    assert np.bincount(opposite.ravel()).max() <= 2
+    assert not non_manifold_vertices(out_f, len(out_v)).any()
+    assert len(out_v) == len(np.unique(out_f))  # unreferenced vertices dropped
+
+
+def test_bow_tie_vertices_are_found() -> None:
+    f = np.array([[0, 1, 2], [0, 3, 4]], dtype=np.int32)
+    assert non_manifold_vertices(f, 5).tolist() == [True, False, False, False, False]
+
+
+def test_small_pieces_are_dropped() -> None:
+    v, f = _box()
+    big = trimesh.creation.icosphere(subdivisions=2)
+    verts = np.vstack([np.asarray(big.vertices), v + 5])
+    faces = np.vstack([np.asarray(big.faces), f + len(big.vertices)]).astype(np.int32)
+    out_v, out_f = drop_small_components(verts, faces, 0.1)
+    assert len(out_f) == len(big.faces) and len(out_v) == len(big.vertices)
+
+
+def test_bad_arrays_are_value_errors() -> None:
+    v, f = _box()
+    with pytest.raises(ValueError, match="faces"):
+        repair(v, f + 100)
+    with pytest.raises(ValueError, match="vertices_m"):
+        repair(np.full_like(v, np.nan), f)

@@ -1,0 +1,147 @@
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.io.capture_io import open_capture, write_capture
+from pipeline.mesh import TriangleMesh
+from pipeline.metrics import MetricsConfig, compare
+from pipeline.reconstruct import (
+    STAGES,
+    ReconstructConfig,
+    config_from_options,
+    config_hash,
+    mesh_from_artifacts,
+    reconstruct,
+    run_stage,
+)
+from tests.pipeline.sphere_scene import (
+    distance_to_sphere,
+    ring_cameras,
+    sphere_mesh,
+    sphere_meta,
+    sphere_views,
+)
+
+BIASES = [0.003, -0.002, 0.004, 0.0, -0.003, 0.001]
+
+
+@pytest.fixture(scope="module")
+def sphere_capture(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    cams = ring_cameras(6, 320, 288)
+    out = tmp_path_factory.mktemp("sphere") / "capture"
+    write_capture(out, sphere_meta(cams), sphere_views(cams, BIASES, noise_m=0.001))
+    return out
+
+
+@pytest.fixture(scope="module")
+def whole_run(sphere_capture: Path) -> tuple[TriangleMesh, dict, list[str], list[float]]:
+    stage_names: list[str] = []
+    fractions: list[float] = []
+    with open_capture(sphere_capture) as capture:
+        mesh, report = reconstruct(capture, ReconstructConfig(), fractions.append,
+                                   stage_names.append)
+    return mesh, report, stage_names, fractions
+
+
+def test_a_sphere_from_analytic_depth_maps_comes_back(
+        sphere_capture: Path, whole_run: tuple[TriangleMesh, dict, list[str], list[float]]
+) -> None:
+    mesh, report, stage_names, fractions = whole_run
+    cameras = ring_cameras(6, 320, 288)
+    assert stage_names == list(STAGES)
+    assert fractions == sorted(fractions) and fractions[-1] == pytest.approx(1.0)
+    d = distance_to_sphere(mesh.vertices_m)
+    assert np.sqrt(np.mean(d**2)) < 0.0008
+    figures = compare(mesh, sphere_mesh(), cameras, MetricsConfig(sample_count=20_000))
+    assert figures["result_to_gt"]["rms_m"] < 0.0008
+    assert figures["coverage_visible"] > 0.97
+    # On a lone sphere a camera's range offset and a move towards the centre look alike, so
+    # the split between them is the priors' (test_align checks offsets on a richer scene).
+    assert set(report["stage_stats"]["align"]["depth_offset_mm"]) == {c.id for c in cameras}
+    assert report["triangles"] == mesh.face_count > 1000
+    assert set(report["stage_seconds"]) == set(STAGES)
+    assert mesh.vertex_colors is not None and np.all(mesh.vertex_colors == 200)
+    assert mesh.vertex_normals is not None
+
+
+def test_stage_by_stage_with_merged_artifacts_gives_the_same_mesh(
+        sphere_capture: Path, whole_run: tuple[TriangleMesh, dict, list[str], list[float]]
+) -> None:
+    config = ReconstructConfig()
+    artifacts: dict[str, np.ndarray] = {}
+    with open_capture(sphere_capture) as capture:
+        for name in STAGES:
+            out = run_stage(name, capture, artifacts, config)
+            assert all(isinstance(v, np.ndarray) for v in out.values())
+            # What a worker stores and loads (npz, no pickles) must round-trip.
+            assert all(v.dtype != object for v in out.values())
+            artifacts.update(out)
+    mesh, whole = mesh_from_artifacts(artifacts), whole_run[0]
+    # Equal up to the summation order of the multi-threaded Poisson solve.
+    assert abs(mesh.face_count - whole.face_count) <= 0.01 * whole.face_count
+    figures = compare(mesh, whole, [], MetricsConfig(sample_count=5000))
+    assert figures["result_to_gt"]["p95_m"] < 2e-4
+
+
+def test_options_become_a_validated_config() -> None:
+    config = config_from_options({"enhance": True, "target_edge_length_m": 0.02,
+                                  "voxel_size_m": 0.01, "frame_index": 0,
+                                  "meshing": {"poisson_depth": 8}})
+    assert config.enhance and config.target_edge_length_m == 0.02
+    assert config.voxel_refine.voxel_size_m == 0.01 and config.meshing.poisson_depth == 8
+    assert config_hash(config) == config_hash(dataclasses.replace(config))
+    assert config_hash(config) != config_hash(ReconstructConfig())
+    assert config_from_options({}) == ReconstructConfig()
+
+
+@pytest.mark.parametrize("options, field", [
+    ({"bogus": 1}, "bogus"),
+    ({"target_edge_length_m": -1.0}, "target_edge_length_m"),
+    ({"target_edge_length_m": "big"}, "target_edge_length_m"),
+    ({"voxel_size_m": 0}, "voxel_size_m"),
+    ({"frame_index": -1}, "frame_index"),
+    ({"enhance": "yes"}, "enhance"),
+    ({"meshing": {"poisson_depth": 99}}, "meshing"),
+    ({"meshing": {"nope": 1}}, "meshing.nope"),
+    ({"world_from_depth": {"cam0": [[1, 0], [0, 1]]}}, "world_from_depth.cam0"),
+    ({"world_from_depth": {"cam0": np.diag([2.0, 1, 1, 1]).tolist()}}, "world_from_depth.cam0"),
+])
+def test_bad_options_are_value_errors_naming_the_option(options: dict, field: str) -> None:
+    with pytest.raises(ValueError, match=field.replace(".", r"\.")):
+        config_from_options(options)
+
+
+def test_a_rig_overrides_the_capture_poses(sphere_capture: Path, tmp_path: Path) -> None:
+    cams = ring_cameras(6, 320, 288)
+    moved = [dataclasses.replace(c, world_from_depth=None) for c in cams]
+    out = tmp_path / "unposed"
+    views = sphere_views(cams, noise_m=0.0)
+    write_capture(out, sphere_meta(moved), [dataclasses.replace(v, camera=m)
+                                            for v, m in zip(views, moved, strict=True)])
+    with open_capture(out) as capture:
+        with pytest.raises(ValueError, match="world_from_depth"):
+            run_stage("filter", capture, {}, ReconstructConfig())
+        rig = {c.id: np.asarray(c.world_from_depth).tolist() for c in cams}
+        config = config_from_options({"world_from_depth": rig})
+        artifacts: dict[str, np.ndarray] = {}
+        for name in ("filter", "align", "register"):
+            artifacts.update(run_stage(name, capture, artifacts, config))
+    points = artifacts["points_world"]
+    assert len(points) > 10_000
+    assert np.percentile(np.abs(distance_to_sphere(points)), 95) < 0.002
+    with open_capture(sphere_capture) as capture, pytest.raises(ValueError, match="frame"):
+        run_stage("filter", capture, {}, config_from_options({"frame_index": 7}))
+
+
+def test_unknown_stages_and_missing_inputs_are_value_errors(sphere_capture: Path) -> None:
+    with open_capture(sphere_capture) as capture:
+        with pytest.raises(ValueError, match="stage"):
+            run_stage("polish", capture, {}, ReconstructConfig())
+        with pytest.raises(ValueError, match="points_world"):
+            run_stage("refine", capture, {}, ReconstructConfig())
+    with pytest.raises(ValueError, match="vertices_m"):
+        mesh_from_artifacts({})

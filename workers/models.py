@@ -1,0 +1,100 @@
+"""SQLAlchemy models of the job store: API keys, captures, jobs and assets."""
+
+from __future__ import annotations
+
+import uuid
+from datetime import UTC, datetime
+from typing import Any
+
+from sqlalchemy import JSON, DateTime, Float, ForeignKey, Integer, String, Text
+from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
+
+JOB_STATES = ("queued", "running", "succeeded", "failed", "cancelled")
+TERMINAL_STATES = frozenset({"succeeded", "failed", "cancelled"})
+
+
+def utcnow() -> datetime:
+    return datetime.now(UTC)
+
+
+def new_id() -> str:
+    return uuid.uuid4().hex
+
+
+class Base(DeclarativeBase):
+    pass
+
+
+class ApiKey(Base):
+    """An API key; only its SHA-256 is stored (keys are 256-bit random, so no slow hash)."""
+
+    __tablename__ = "api_keys"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
+    name: Mapped[str] = mapped_column(String(100), index=True)
+    prefix: Mapped[str] = mapped_column(String(16))
+    """The key's first characters, shown by ``volumesh keys list`` to tell keys apart."""
+    key_hash: Mapped[str] = mapped_column(String(64), unique=True, index=True)
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+    revoked_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True), default=None)
+
+
+class Capture(Base):
+    """An uploaded capture zip, stored once per content (id = start of its SHA-256)."""
+
+    __tablename__ = "captures"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True)
+    sha256: Mapped[str] = mapped_column(String(64), unique=True)
+    size_bytes: Mapped[int] = mapped_column(Integer)
+    storage_key: Mapped[str] = mapped_column(String(200))
+    state: Mapped[str] = mapped_column(String(16), default="validating")
+    """validating (a worker is reading it) | ready | rejected (error says why)."""
+    error: Mapped[str | None] = mapped_column(Text, default=None)
+    cameras: Mapped[int | None] = mapped_column(Integer, default=None)
+    frames: Mapped[int | None] = mapped_column(Integer, default=None)
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+
+
+class Job(Base):
+    """One reconstruction of a capture; workers advance it stage by stage."""
+
+    __tablename__ = "jobs"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
+    capture_id: Mapped[str] = mapped_column(ForeignKey("captures.id"), index=True)
+    state: Mapped[str] = mapped_column(String(16), default="queued", index=True)
+    stage: Mapped[str | None] = mapped_column(String(40), default=None)
+    stage_index: Mapped[int] = mapped_column(Integer, default=0)
+    """Index in ``stages`` of the stage now running (or last run)."""
+    done_count: Mapped[int] = mapped_column(Integer, default=0)
+    """Stages finished, whose successor has been queued; a task for an earlier index is a
+    duplicate delivery and does nothing."""
+    stages: Mapped[list[str]] = mapped_column(JSON, default=list)
+    """The stages this job runs, in order (set by the first worker that picks it up)."""
+    progress: Mapped[float] = mapped_column(Float, default=0.0)
+    stage_timings: Mapped[dict[str, float]] = mapped_column(JSON, default=dict)
+    """Seconds each finished stage took (0 when its output was already stored)."""
+    error: Mapped[str | None] = mapped_column(Text, default=None)
+    options: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
+    asset_id: Mapped[str | None] = mapped_column(String(32), default=None)
+    task_id: Mapped[str | None] = mapped_column(String(64), default=None)
+    """Celery id of the task now queued or running for this job (for revoke)."""
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow,
+                                                 index=True)
+    updated_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+    started_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True), default=None)
+    """When a worker started the job's first stage."""
+    finished_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True), default=None)
+
+
+class Asset(Base):
+    """The results of a succeeded job: ``files`` maps a name (mesh.glb) to its stored object."""
+
+    __tablename__ = "assets"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
+    job_id: Mapped[str] = mapped_column(ForeignKey("jobs.id"), unique=True)
+    files: Mapped[dict[str, dict[str, Any]]] = mapped_column(JSON, default=dict)
+    """name -> {"key": storage key, "sha256": hex, "bytes": int, "content_type": str}."""
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)

@@ -1,0 +1,34 @@
+"""Picking unfinished jobs up again after the embedded worker restarted.
+
+The embedded file-system broker forgets a task whose worker died while running it; on start,
+``volumesh serve`` therefore queues every unfinished job again at its current stage. Duplicate
+deliveries are harmless (a stage already counted is skipped; stored outputs are reused).
+"""
+
+from __future__ import annotations
+
+from sqlalchemy import select
+
+from workers.celery_app import TASK_STAGE, make_celery, queue_for_stage
+from workers.db import init_db, make_engine, make_sessionmaker
+from workers.models import Job
+from workers.settings import Settings
+
+
+def requeue_unfinished(settings: Settings) -> list[str]:
+    """Queue the next stage of every queued or running job; returns their ids."""
+    engine = make_engine(settings)
+    init_db(engine)
+    sessions = make_sessionmaker(engine)
+    with sessions() as session:
+        rows = list(session.execute(select(Job.id, Job.done_count, Job.stages)
+                                    .where(Job.state.in_(("queued", "running")))))
+    engine.dispose()
+    if not rows:
+        return []
+    celery = make_celery(settings)
+    for job_id, done, stages in rows:
+        stage = stages[done] if stages and done < len(stages) else ""
+        queue = queue_for_stage(stage)
+        celery.send_task(TASK_STAGE, args=[job_id, done], queue=queue, routing_key=queue)
+    return [row[0] for row in rows]

@@ -1,0 +1,116 @@
+"""Service settings: one pydantic-settings object read from ``VOLUMESH_*`` environment variables.
+
+The defaults give the embedded mode: everything lives under ``data_dir`` (SQLite job store,
+file-system broker, local storage) and no outside service is needed.
+"""
+
+from __future__ import annotations
+
+from functools import cached_property
+from pathlib import Path
+from typing import Annotated
+
+from pydantic import Field, SecretStr, field_validator
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
+
+MiB = 1024 * 1024
+GiB = 1024 * MiB
+
+
+class Settings(BaseSettings):
+    """Everything the gateway and the workers are configured with."""
+
+    model_config = SettingsConfigDict(env_prefix="VOLUMESH_", extra="ignore", frozen=True)
+
+    data_dir: Path = Path("volumesh-data")
+    """Holds everything the embedded default keeps: job store, broker files, captures, assets."""
+    broker_url: str | None = None
+    """Celery broker (``redis://host:6379/0``); None = embedded file-system broker in data_dir."""
+    database_url: str | None = None
+    """SQLAlchemy URL of the job store; None = SQLite file in data_dir."""
+    storage_url: str | None = None
+    """``s3://bucket/prefix`` or a local directory; None = ``data_dir/storage``."""
+    s3_endpoint_url: str | None = None
+    """Endpoint of an S3-compatible store (MinIO, ...); None = AWS."""
+    s3_region: str = "us-east-1"
+    s3_access_key_id: str | None = None
+    s3_secret_access_key: SecretStr | None = None
+
+    require_auth_for_reads: bool = False
+    """When true, GET requests also need ``Authorization: Bearer <api key>``."""
+    cors_origins: Annotated[list[str], NoDecode] = Field(default_factory=list)
+    """Origins allowed by CORS, comma separated in the environment; ``*`` allows any."""
+
+    max_upload_bytes: int = Field(default=4 * GiB, gt=0)
+    """Largest capture zip accepted."""
+    max_capture_files: int = Field(default=50_000, gt=0)
+    """Most entries a capture zip may hold."""
+    max_unpacked_bytes: int = Field(default=16 * GiB, gt=0)
+    """Largest total unpacked size of a capture zip."""
+    max_compression_ratio: float = Field(default=100.0, gt=1.0)
+    """Largest unpacked/packed ratio of one zip entry over 1 MiB (zip bombs exceed it)."""
+    max_json_bytes: int = Field(default=256 * 1024, gt=0)
+    """Largest body of a JSON request."""
+    stale_upload_s: float = Field(default=600.0, gt=0)
+    """A partial upload untouched this long is from a gateway that died; it is deleted."""
+    validation_timeout_s: float = Field(default=120.0, gt=0)
+    """How long an upload waits for a worker to validate the capture."""
+
+    task_soft_time_limit_s: int = Field(default=3300, gt=0)
+    """A stage running longer is asked to stop (and fails the job)."""
+    task_time_limit_s: int = Field(default=3600, gt=0)
+    """A stage running longer is killed."""
+    visibility_timeout_s: int = Field(default=4000, gt=0)
+    """Redis: an unacknowledged task is handed to another worker after this long (a worker
+    died); keep it above ``task_time_limit_s``."""
+    task_max_retries: int = Field(default=5, ge=0)
+    """Retries (with exponential back-off) of a stage that hit a transient error."""
+    worker_concurrency: int = Field(default=1, gt=0)
+    """Processes per worker; stages are CPU-heavy, so one per worker process is the default."""
+    embedded_worker: bool = True
+    """Embedded mode only: ``volumesh serve`` starts a worker beside the gateway."""
+    broker_polling_interval_s: float = Field(default=0.05, gt=0)
+    """Embedded file-system broker: how often an idle worker looks for a task."""
+    progress_interval_s: float = Field(default=0.25, ge=0)
+    """Least time between two progress writes of a stage to the job store."""
+
+    @field_validator("cors_origins", mode="before")
+    @classmethod
+    def _split_origins(cls, value: object) -> object:
+        if isinstance(value, str):
+            return [origin.strip() for origin in value.split(",") if origin.strip()]
+        return value
+
+    @property
+    def embedded(self) -> bool:
+        """True when no outside broker is configured (file-system broker in data_dir)."""
+        return self.broker_url is None
+
+    @cached_property
+    def resolved_database_url(self) -> str:
+        if self.database_url:
+            return self.database_url
+        return f"sqlite:///{(self.data_dir / 'volumesh.db').resolve()}"
+
+    @cached_property
+    def resolved_storage_url(self) -> str:
+        return self.storage_url or str((self.data_dir / "storage").resolve())
+
+    @property
+    def broker_dir(self) -> Path:
+        return self.data_dir / "broker"
+
+    @property
+    def tmp_dir(self) -> Path:
+        """Partial uploads; same file system as local storage so a finished one is renamed."""
+        return self.data_dir / "tmp"
+
+    @property
+    def cache_dir(self) -> Path:
+        """Worker-local copies of captures fetched from object storage."""
+        return self.data_dir / "cache"
+
+
+def get_settings() -> Settings:
+    """Settings from the environment (a fresh object: tests change the environment)."""
+    return Settings()

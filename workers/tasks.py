@@ -1,0 +1,120 @@
+"""Thin Celery tasks: ids in, work in :mod:`workers.runner`, state to the job store.
+
+The gateway sends these by name (``volumesh.stage``, ``volumesh.validate_capture``) and never
+imports this module.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+from celery import Task, shared_task
+from celery.exceptions import SoftTimeLimitExceeded
+from celery.signals import worker_process_init
+
+from workers.celery_app import TASK_STAGE, TASK_VALIDATE
+from workers.runner import (
+    JobCancelledError,
+    WorkerContext,
+    run_step,
+    stage_name,
+    validate_capture,
+)
+from workers.settings import Settings, get_settings
+
+log = logging.getLogger(__name__)
+
+_contexts: dict[int, WorkerContext] = {}
+
+
+def _transient_errors() -> tuple[type[BaseException], ...]:
+    """Errors worth a retry: the network, the database or the storage hiccuped."""
+    from botocore.exceptions import BotoCoreError
+    from kombu.exceptions import OperationalError as BrokerError
+    from sqlalchemy.exc import InterfaceError, OperationalError
+
+    return (OSError, ConnectionError, TimeoutError, OperationalError, InterfaceError,
+            BotoCoreError, BrokerError)
+
+
+def _context(task: Task) -> WorkerContext:
+    settings: Settings = getattr(task.app, "volumesh_settings", None) or get_settings()
+    ctx = _contexts.get(id(settings))
+    if ctx is None:
+        ctx = _contexts[id(settings)] = WorkerContext.create(settings)
+    return ctx
+
+
+@worker_process_init.connect
+def _prepare_process(**_: Any) -> None:
+    # Celery's pool processes are daemonic, and a daemonic process may not start children;
+    # the remesh stage runs its native kernel in a child so a crash there fails the stage
+    # instead of killing (and endlessly redelivering) the task.
+    # Billiard (Celery's fork of multiprocessing) also leaves an authkey type the standard
+    # library refuses to pickle into a spawned child; hand it a plain one.
+    import multiprocessing
+    import multiprocessing.process
+
+    config = multiprocessing.current_process()._config  # type: ignore[attr-defined]
+    config.pop("daemon", None)
+    plain_key = multiprocessing.process.AuthenticationString  # type: ignore[attr-defined]
+    config["authkey"] = plain_key(bytes(config["authkey"]))
+    # Load the pipeline once per worker process, not on a job's clock.
+    import pipeline.io.capture_io  # noqa: F401
+
+    try:
+        import pipeline.reconstruct  # noqa: F401
+    except ImportError:
+        log.warning("pipeline.reconstruct is missing: stage tasks will fail")
+
+
+def _backoff_s(retries: int) -> float:
+    return float(min(60, 2 ** retries))
+
+
+@shared_task(bind=True, name=TASK_STAGE)
+def stage(self: Task, job_id: str, index: int) -> None:
+    """Run stage ``index`` of job ``job_id`` and queue the next one."""
+    ctx = _context(self)
+
+    def send(name: str, args: list[Any], queue: str) -> str:
+        return str(self.app.send_task(name, args=args, queue=queue, routing_key=queue).id)
+
+    try:
+        run_step(ctx, job_id, index, self.request.id, send)
+    except JobCancelledError:
+        log.info("job %s cancelled during stage %d", job_id, index)
+    except ValueError as exc:
+        ctx.store.fail(job_id, str(exc))
+    except SoftTimeLimitExceeded:
+        ctx.store.fail(job_id, f"{stage_name(ctx, job_id, index)} ran longer than the "
+                       f"{ctx.settings.task_soft_time_limit_s} s limit "
+                       "(VOLUMESH_TASK_SOFT_TIME_LIMIT_S)")
+    except _transient_errors() as exc:
+        if self.request.retries >= ctx.settings.task_max_retries:
+            ctx.store.fail(job_id, f"{stage_name(ctx, job_id, index)} gave up after "
+                           f"{self.request.retries} retries: {type(exc).__name__}: {exc}")
+            return
+        log.warning("job %s stage %d: transient %r, retrying", job_id, index, exc)
+        raise self.retry(exc=exc, countdown=_backoff_s(self.request.retries),
+                         max_retries=ctx.settings.task_max_retries) from exc
+    except Exception as exc:
+        log.exception("job %s stage %d failed unexpectedly", job_id, index)
+        ctx.store.fail(job_id, f"internal error in {stage_name(ctx, job_id, index)}: "
+                       f"{type(exc).__name__}: {exc}")
+
+
+@shared_task(bind=True, name=TASK_VALIDATE, soft_time_limit=540, time_limit=600)
+def validate(self: Task, capture_id: str) -> None:
+    """Read an uploaded capture whole; mark it ready or rejected (with the reader's message)."""
+    ctx = _context(self)
+    try:
+        validate_capture(ctx, capture_id)
+    except SoftTimeLimitExceeded:
+        ctx.store.capture_rejected(capture_id, "reading the capture took longer than 540 s")
+    except _transient_errors() as exc:
+        if self.request.retries >= ctx.settings.task_max_retries:
+            raise
+        raise self.retry(exc=exc, countdown=_backoff_s(self.request.retries),
+                         max_retries=ctx.settings.task_max_retries) from exc
