@@ -9,7 +9,7 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI
 from fastapi.middleware.cors import CORSMiddleware
 
-from app.api.routes import assets, captures, health, jobs
+from app.api.routes import assets, captures, health, jobs, rigs
 from app.core import problems
 from app.core.context import Gateway
 from app.core.limits import BodyLimitMiddleware
@@ -31,7 +31,7 @@ Writes need `Authorization: Bearer <api key>`; errors are RFC 9457 problem+json.
 def _include_api(app: FastAPI) -> None:
     # Each resource router straight on the app (not nested in an /api/v1 router): one routing
     # level less on every request.
-    for module in (captures, jobs, assets):
+    for module in (captures, jobs, assets, rigs):
         app.include_router(module.router, prefix=API_PREFIX)
 
 

@@ -2,15 +2,19 @@
 
 from __future__ import annotations
 
+import math
+import re
 from datetime import UTC, datetime
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from workers.models import Asset, Capture, Job
+from workers.models import Asset, Capture, Job, Rig
 
 API_PREFIX = "/api/v1"
 ID_PATTERN = r"^[0-9a-f]{32}$"
+CAMERA_ID_PATTERN = r"[A-Za-z0-9_-]{1,32}"  # as pipeline.capture (not imported here)
+RIG_FORMAT_ID: Literal["volumesh.rig/1"] = "volumesh.rig/1"
 JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 AssetFileName = Literal["mesh.glb", "mesh.ply", "report.json"]
 
@@ -43,12 +47,55 @@ _SECTION = ("Settings of one pipeline stage by field name (e.g. meshing: {\"pois
             "a worker checks them, and the job fails with a message naming a bad one.")
 
 
+Matrix4 = list[list[float]]
+
+
+def check_rigid(matrix: Matrix4, where: str) -> Matrix4:
+    """The matrix if it is a finite 4x4 rigid transform, else ValueError naming ``where``.
+
+    The pipeline checks poses again with numpy; the gateway keeps its own few lines so that it
+    never imports the pipeline, and a bad rig is refused at once with a 422."""
+    if len(matrix) != 4 or any(len(row) != 4 for row in matrix):
+        raise ValueError(f"{where}: must be a 4x4 nested list")
+    if not all(math.isfinite(x) for row in matrix for x in row):
+        raise ValueError(f"{where}: must hold finite numbers")
+    if any(abs(x - y) > 1e-9 for x, y in zip(matrix[3], (0, 0, 0, 1), strict=True)):
+        raise ValueError(f"{where}: last row must be [0,0,0,1]")
+    rows = [row[:3] for row in matrix[:3]]
+    columns = list(zip(*rows, strict=True))
+    for i in range(3):
+        for j in range(3):
+            dot = sum(a * b for a, b in zip(columns[i], columns[j], strict=True))
+            if abs(dot - (1.0 if i == j else 0.0)) > 1e-3:
+                raise ValueError(f"{where}: is not rigid (its 3x3 block is not a rotation)")
+    (a, b, c), (d, e, f), (g, h, i_) = rows
+    if a * (e * i_ - f * h) - b * (d * i_ - f * g) + c * (d * h - e * g) < 0:
+        raise ValueError(f"{where}: is a reflection, not a rotation")
+    return matrix
+
+
+def _check_poses(poses: dict[str, Matrix4] | None, name: str) -> dict[str, Matrix4] | None:
+    for camera_id, matrix in (poses or {}).items():
+        if not re.fullmatch(CAMERA_ID_PATTERN, camera_id):
+            raise ValueError(f"{name}: camera id {camera_id!r} does not match "
+                             f"{CAMERA_ID_PATTERN}")
+        check_rigid(matrix, f"{name}.{camera_id}")
+    return poses
+
+
 class JobCreate(BaseModel):
-    """A reconstruction of an uploaded capture; unset options take the pipeline's defaults."""
+    """A reconstruction of an uploaded capture; unset options take the pipeline's defaults.
+
+    Camera poses come from the capture, or from one of: ``world_from_depth`` (inline),
+    ``rig_id`` (a saved rig) or ``calibration_capture_id`` (calibrate first; the rig found is
+    saved under the job's id). With ``calibration_capture_id`` and no ``capture_id`` the job
+    only calibrates."""
 
     model_config = ConfigDict(extra="forbid")
 
-    capture_id: str = Field(pattern=ID_PATTERN, description="Id returned by POST /captures.")
+    capture_id: str | None = Field(
+        default=None, pattern=ID_PATTERN,
+        description="Id returned by POST /captures; may be left out of a calibration-only job.")
     enhance: bool = Field(default=True, description="Run the LDM enhancement stage (gpu queue).")
     target_edge_length_m: float | None = Field(
         default=None, gt=0.0005, le=0.5, description="Remeshing target edge length, metres.")
@@ -60,6 +107,18 @@ class JobCreate(BaseModel):
         default=None, max_length=64,
         description="Camera poses replacing the capture's (a rig.json's world_from_depth): "
                     "camera id -> 4x4 rigid transform, metres.")
+    rig_id: str | None = Field(
+        default=None, pattern=ID_PATTERN,
+        description="A saved rig (POST /rigs, or a calibration job's id) whose poses replace "
+                    "the capture's.")
+    calibration_capture_id: str | None = Field(
+        default=None, pattern=ID_PATTERN,
+        description="A calibration capture (with a ChArUco target) to calibrate the rig from "
+                    "first; the rig is saved as /rigs/{job id} for later captures.")
+    rig_name: str | None = Field(default=None, min_length=1, max_length=100,
+                                 description="Name to save the calibrated rig under.")
+    calibration: StageSettings | None = Field(
+        default=None, description="Calibration settings by field name (e.g. {\"icp\": true}).")
     depth_filter: StageSettings | None = Field(default=None, description=_SECTION)
     align: StageSettings | None = Field(default=None, description=_SECTION)
     registration: StageSettings | None = Field(default=None, description=_SECTION)
@@ -77,8 +136,32 @@ class JobCreate(BaseModel):
     draco_compression_level: int | None = Field(
         default=None, ge=0, le=10, description="Draco speed/size trade-off, 0..10.")
 
+    _poses = field_validator("world_from_depth")(
+        lambda v: _check_poses(v, "world_from_depth"))
+
+    @model_validator(mode="after")
+    def _one_source_of_poses(self) -> JobCreate:
+        given = [n for n in ("world_from_depth", "rig_id", "calibration_capture_id")
+                 if getattr(self, n) is not None]
+        if len(given) > 1:
+            raise ValueError(f"give at most one of world_from_depth, rig_id and "
+                             f"calibration_capture_id (got {', '.join(given)})")
+        if self.capture_id is None and self.calibration_capture_id is None:
+            raise ValueError("capture_id is required (or calibration_capture_id alone, "
+                             "for a job that only calibrates)")
+        if self.calibration_capture_id is None and (self.rig_name or self.calibration):
+            raise ValueError("rig_name and calibration need calibration_capture_id")
+        return self
+
+    @property
+    def calibrate_only(self) -> bool:
+        return self.capture_id is None
+
     def options(self) -> dict[str, Any]:
-        return self.model_dump(exclude={"capture_id"}, exclude_none=True)
+        options = self.model_dump(exclude={"capture_id"}, exclude_none=True)
+        if self.calibrate_only:
+            options["calibrate_only"] = True
+        return options
 
 
 class JobPublic(BaseModel):
@@ -105,6 +188,9 @@ class JobPublic(BaseModel):
         links = {"self": f"{API_PREFIX}/jobs/{row.id}",
                  "events": f"{API_PREFIX}/jobs/{row.id}/events",
                  "capture": f"{API_PREFIX}/captures/{row.capture_id}"}
+        options = row.options or {}
+        if options.get("rig_id") or options.get("calibration_capture_id"):
+            links["rig"] = f"{API_PREFIX}/rigs/{options.get('rig_id') or row.id}"
         if row.asset_id:
             base = f"{API_PREFIX}/assets/{row.asset_id}"
             links.update({"asset": base, "mesh_glb": f"{base}/mesh.glb",
@@ -151,6 +237,60 @@ class AssetPublic(BaseModel):
                                  sha256=f["sha256"], content_type=f["content_type"])
                  for name, f in (row.files or {}).items()}
         return cls(id=row.id, job_id=row.job_id, files=files, created_at=_utc(row.created_at))
+
+
+class RigCreate(BaseModel):
+    """A rig file (what ``volumesh calibrate`` writes): poses plus any report fields."""
+
+    model_config = ConfigDict(extra="allow")
+
+    format: Literal["volumesh.rig/1"] = RIG_FORMAT_ID
+    name: str | None = Field(default=None, min_length=1, max_length=100,
+                             description="A name to find the rig by (e.g. the studio).")
+    world_from_depth: dict[str, Matrix4] = Field(
+        min_length=1, max_length=64,
+        description="Camera id -> 4x4 rigid transform from its depth frame to the world, metres.")
+
+    _poses = field_validator("world_from_depth")(
+        lambda v: _check_poses(v, "world_from_depth"))
+
+    def document(self) -> dict[str, Any]:
+        """The rig.json document to store (the name is kept apart)."""
+        return self.model_dump(exclude={"name"})
+
+
+class RigPublic(BaseModel):
+    id: str
+    name: str | None
+    cameras: list[str]
+    source: Literal["upload", "calibration"] = Field(
+        description="upload (POST /rigs) or calibration (the calibrate stage of job `id`).")
+    calibration_capture_id: str | None
+    world_from_depth: dict[str, Matrix4]
+    report: dict[str, Any] = Field(
+        description="The calibration's quality report (reprojection RMS per camera, "
+                    "triangulation error, views used, warnings) when there is one.")
+    created_at: datetime | None
+    links: dict[str, str]
+
+    @classmethod
+    def of(cls, row: Rig) -> RigPublic:
+        document = dict(row.document or {})
+        poses = document.pop("world_from_depth", {})
+        document.pop("format", None)
+        base = f"{API_PREFIX}/rigs/{row.id}"
+        return cls(id=row.id, name=row.name, cameras=list(row.cameras or []),
+                   source=row.source,  # type: ignore[arg-type]
+                   calibration_capture_id=row.calibration_capture_id, world_from_depth=poses,
+                   report=document, created_at=_utc(row.created_at),
+                   links={"self": base, "rig_json": f"{base}/rig.json"})
+
+
+class RigPage(BaseModel):
+    items: list[RigPublic]
+    total: int
+    limit: int
+    offset: int
 
 
 class Health(BaseModel):

@@ -123,7 +123,9 @@ def _coerce(value: Any, current: Any, name: str) -> Any:
     raise ValueError(f"{name}: cannot be set from options")
 
 
-def _replace_section(section: Any, values: Any, name: str) -> Any:
+def replace_section(section: Any, values: Any, name: str) -> Any:
+    """A frozen config dataclass with ``values`` (JSON-like, by field name) put in; ValueError
+    naming ``name.field`` for an unknown field, a value of the wrong type or a bad value."""
     if not isinstance(values, Mapping):
         raise ValueError(f"{name}: expected an object of settings")
     fields = {f.name: f for f in dataclasses.fields(section)}
@@ -178,15 +180,15 @@ def config_from_options(options: Mapping[str, Any]) -> ReconstructConfig:
                 raise ValueError("frame_index: must be >= 0")
             config = dataclasses.replace(config, frame_index=index)
         elif key == "target_edge_length_m":
-            section = _replace_section(config.remesh, {"target_edge_length_m": value}, key)
+            section = replace_section(config.remesh, {"target_edge_length_m": value}, key)
             config = dataclasses.replace(config, remesh=section)
         elif key == "voxel_size_m":
-            section = _replace_section(config.voxel_refine, {"voxel_size_m": value}, key)
+            section = replace_section(config.voxel_refine, {"voxel_size_m": value}, key)
             config = dataclasses.replace(config, voxel_refine=section)
         elif key == "world_from_depth":
             config = dataclasses.replace(config, world_from_depth=parse_world_from_depth(value))
         elif key in _SECTIONS:
-            section = _replace_section(getattr(config, key), value, key)
+            section = replace_section(getattr(config, key), value, key)
             config = dataclasses.replace(config, **{key: section})
         else:
             raise ValueError(f"{key}: unknown reconstruction option")

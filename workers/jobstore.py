@@ -12,7 +12,7 @@ from typing import Any
 from sqlalchemy import CursorResult, update
 from sqlalchemy.orm import Session, sessionmaker
 
-from workers.models import Asset, Capture, Job, utcnow
+from workers.models import Asset, Capture, Job, Rig, utcnow
 
 LIVE = ("queued", "running")
 
@@ -116,6 +116,35 @@ class JobStore:
             job.updated_at = now
             job.finished_at = now
             return True
+
+    def complete(self, job_id: str, seconds_by_stage: dict[str, float]) -> bool:
+        """Mark a job that makes no asset (it only calibrates) succeeded."""
+        with self.sessions.begin() as session:
+            job = session.get(Job, job_id, with_for_update=True)
+            if job is None or job.state not in LIVE:
+                return False
+            now = utcnow()
+            job.state, job.progress, job.updated_at, job.finished_at = "succeeded", 1.0, now, now
+            job.done_count = len(job.stages or ())
+            job.stage_timings = {**(job.stage_timings or {}),
+                                 **{k: round(v, 4) for k, v in seconds_by_stage.items()}}
+            return True
+
+    def rig(self, rig_id: str) -> dict[str, Any] | None:
+        """The rig.json document of a saved rig, or None."""
+        with self.sessions() as session:
+            row = session.get(Rig, rig_id)
+            return None if row is None else dict(row.document)
+
+    def save_rig(self, rig_id: str, document: dict[str, Any], name: str | None,
+                 calibration_capture_id: str) -> None:
+        """Save (or, on a redelivery, overwrite) the rig a calibration found."""
+        with self.sessions.begin() as session:
+            row = session.get(Rig, rig_id) or Rig(id=rig_id)
+            row.name, row.document, row.source = name, document, "calibration"
+            row.cameras = sorted(document["world_from_depth"])
+            row.calibration_capture_id = calibration_capture_id
+            session.add(row)
 
     def fail(self, job_id: str, error: str) -> None:
         now = utcnow()

@@ -1,4 +1,4 @@
-"""SQLAlchemy models of the job store: API keys, captures, jobs and assets."""
+"""SQLAlchemy models of the job store: API keys, captures, jobs, assets and rigs."""
 
 from __future__ import annotations
 
@@ -98,3 +98,20 @@ class Asset(Base):
     files: Mapped[dict[str, dict[str, Any]]] = mapped_column(JSON, default=dict)
     """name -> {"key": storage key, "sha256": hex, "bytes": int, "content_type": str}."""
     created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+
+
+class Rig(Base):
+    """Saved camera poses of a rig: uploaded as rig.json, or found by a calibration job."""
+
+    __tablename__ = "rigs"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
+    name: Mapped[str | None] = mapped_column(String(100), default=None, index=True)
+    cameras: Mapped[list[str]] = mapped_column(JSON, default=list)
+    document: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
+    """The rig.json document: format, world_from_depth and the calibration's report."""
+    source: Mapped[str] = mapped_column(String(16), default="upload")
+    """upload (POST /rigs) | calibration (a job's calibrate stage; then id = the job's id)."""
+    calibration_capture_id: Mapped[str | None] = mapped_column(String(32), default=None)
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow,
+                                                 index=True)

@@ -1,5 +1,8 @@
 """The work behind the thin tasks: validate a capture, run one stage of a job, export a job.
 
+A job may calibrate first (``calibration_capture_id``): its ``calibrate`` stage saves the rig
+under the job's id, and the later stages read their camera poses from it.
+
 A job runs as a chain of stage tasks. Each stage's output is stored as ``.npz`` keyed by the
 capture's hash, the stage and a hash of the settings of that stage and of the stages before
 it, so a re-run (a retry, a redelivery after a worker died, a second job with the same or
@@ -34,6 +37,10 @@ log = logging.getLogger(__name__)
 
 EXPORT_STAGE = "export"
 ENHANCE_STAGE = "enhance"
+CALIBRATE_STAGE = "calibrate"
+_NOT_PIPELINE = ("rig_id", "calibration_capture_id", "rig_name", "calibration",
+                 "calibrate_only")
+"""Job options the service acts on itself; the rest configure the reconstruction."""
 
 
 class JobCancelledError(Exception):
@@ -90,11 +97,14 @@ def validate_capture(ctx: WorkerContext, capture_id: str) -> None:
 
 
 def plan_stages(options: dict[str, Any]) -> list[str]:
-    """The stages a job with these options runs, export last."""
+    """The stages a job with these options runs: calibrate first when asked, export last."""
     from pipeline.reconstruct import STAGES
 
+    first = [CALIBRATE_STAGE] if options.get("calibration_capture_id") else []
+    if options.get("calibrate_only"):
+        return first
     stages = [s for s in STAGES if options.get("enhance", True) or s != ENHANCE_STAGE]
-    return [*stages, EXPORT_STAGE]
+    return [*first, *stages, EXPORT_STAGE]
 
 
 def _artifact_key(sha256: str, index: int, stage: str, chain: str) -> str:
@@ -192,31 +202,74 @@ def run_step(ctx: WorkerContext, job_id: str, index: int, task_id: str | None,
         export(ctx, job, stages)
         return
     started = time.perf_counter()
-    computed = _run_stage(ctx, job, stages, index)
+    if name == CALIBRATE_STAGE:
+        computed = calibrate(ctx, job, index, len(stages))
+    else:
+        computed = _run_stage(ctx, job, stages, index)
     seconds = time.perf_counter() - started if computed else 0.0  # 0: output reused
     if ctx.store.state(job_id) != "running":
         return  # cancelled while the stage ran
+    if index + 1 == len(stages):  # a job that only calibrates ends here, with no asset
+        ctx.store.complete(job_id, {name: seconds})
+        return
     send(TASK_STAGE, [job_id, index + 1], queue_for_stage(stages[index + 1]))
     ctx.store.finish_stage(job_id, index, name, seconds, (index + 1) / len(stages))
 
 
-def _job_config(job: JobView) -> tuple[Any, str]:
+def _job_config(ctx: WorkerContext, job: JobView) -> tuple[Any, str]:
     from pipeline.reconstruct import config_from_options, config_hash
 
-    config = config_from_options(_pipeline_options(job.options))
+    options = _pipeline_options(job.options)
+    if job.options.get("calibration_capture_id"):
+        rig = ctx.store.rig(job.id)
+        if rig is None:
+            raise ValueError(f"job {job.id}: its calibrate stage saved no rig")
+        options["world_from_depth"] = rig["world_from_depth"]
+    config = config_from_options(options)
     return config, config_hash(config)
 
 
+def _work_stages(stages: tuple[str, ...]) -> tuple[str, ...]:
+    """The stages that pass array artifacts along (neither calibrate nor export)."""
+    return tuple(s for s in stages if s not in (CALIBRATE_STAGE, EXPORT_STAGE))
+
+
 def _artifact_keys(sha256: str, stages: tuple[str, ...], config: Any) -> list[str]:
-    """Storage keys of the stages' outputs (export excluded)."""
-    work = stages[:-1]
+    """Storage keys of the work stages' outputs, in order."""
+    work = _work_stages(stages)
     return [_artifact_key(sha256, i, stage, key)
             for i, (stage, key) in enumerate(zip(work, stage_keys(work, config), strict=True))]
 
 
 def _pipeline_options(options: dict[str, Any]) -> dict[str, Any]:
-    # Export settings (Draco) are the service's, not the reconstruction's.
-    return {k: v for k, v in options.items() if not k.startswith("draco_")}
+    # Export settings (Draco) and where poses come from are the service's, not the pipeline's.
+    return {k: v for k, v in options.items()
+            if not k.startswith("draco_") and k not in _NOT_PIPELINE}
+
+
+def calibrate(ctx: WorkerContext, job: JobView, index: int, count: int) -> bool:
+    """Calibrate from the job's calibration capture and save the rig under the job's id;
+    False when a redelivered task finds it saved already."""
+    from pipeline.calibration import CalibrationConfig
+    from pipeline.calibration import calibrate as find_poses
+    from pipeline.io.capture_io import open_capture
+    from pipeline.io.rig_io import rig_to_json
+    from pipeline.reconstruct import replace_section
+
+    if ctx.store.rig(job.id) is not None:
+        return False
+    capture_id = job.options["calibration_capture_id"]
+    found = ctx.store.capture(capture_id)
+    if found is None:
+        raise ValueError(f"calibration capture {capture_id} no longer exists")
+    config = replace_section(CalibrationConfig(), job.options.get("calibration", {}),
+                             "calibration")
+    progress = _Progress(ctx, job.id, index, count)
+    with open_capture(capture_path(ctx, *found)) as reader:
+        world_from_depth, report = find_poses(reader, config, progress=progress)
+    ctx.store.save_rig(job.id, rig_to_json(world_from_depth, report),
+                       job.options.get("rig_name"), capture_id)
+    return True
 
 
 def _run_stage(ctx: WorkerContext, job: JobView, stages: tuple[str, ...], index: int) -> bool:
@@ -228,13 +281,14 @@ def _run_stage(ctx: WorkerContext, job: JobView, stages: tuple[str, ...], index:
     if found is None:
         raise ValueError(f"capture {job.capture_id} no longer exists")
     sha256, capture_key = found
-    config, _ = _job_config(job)
+    config, _ = _job_config(ctx, job)
     keys = _artifact_keys(sha256, stages, config)
-    out_key = keys[index]
+    position = _work_stages(stages).index(stages[index])
+    out_key = keys[position]
     if ctx.storage.exists(out_key):
         return False
     inputs: dict[str, np.ndarray] = {}
-    for earlier in keys[:index]:
+    for earlier in keys[:position]:
         inputs.update(_load_npz(ctx, earlier))
     progress = _Progress(ctx, job.id, index, len(stages))
     with open_capture(capture_path(ctx, sha256, capture_key)) as reader:
@@ -264,7 +318,7 @@ def export(ctx: WorkerContext, job: JobView, stages: tuple[str, ...]) -> None:
     if found is None:
         raise ValueError(f"capture {job.capture_id} no longer exists")
     sha256, _ = found
-    config, config_digest = _job_config(job)
+    config, config_digest = _job_config(ctx, job)
     artifacts: dict[str, np.ndarray] = {}
     for key in _artifact_keys(sha256, stages, config):
         artifacts.update(_load_npz(ctx, key))
@@ -303,6 +357,8 @@ def _report(ctx: WorkerContext, job: JobView, stages: tuple[str, ...], mesh: Any
         "job_id": job.id,
         "capture_id": job.capture_id,
         "options": job.options,
+        "rig_id": job.options.get("rig_id") or (
+            job.id if job.options.get("calibration_capture_id") else None),
         "stages": list(stages),
         "stage_seconds": seconds,
         "total_seconds": round(sum(seconds.values()), 3),

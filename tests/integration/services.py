@@ -245,6 +245,30 @@ def make_capture_zip(folder: Path, cameras: int = 4, width: int = 160, height: i
     return zip_path
 
 
+def make_calibration_zip(folder: Path, cameras: int = 4, width: int = 160, height: int = 144,
+                         frames: int = 8, seed: int = 0) -> Path:
+    """A ChArUco board moved through the rig of :func:`make_capture_zip` with the same
+    parameters (so its calibration fits that capture), packed as a zip; cached."""
+    from pipeline.io.capture_io import write_capture, zip_capture
+    from pipeline.synth.rig import RigConfig
+    from pipeline.synth.scene import SynthConfig, place_subject, sample_mesh, true_cameras
+    from pipeline.synth.target import TargetSynthConfig, synthesize_calibration
+
+    name = f"calibration-{cameras}x{width}x{height}x{frames}-{seed}"
+    zip_path = folder / f"{name}.zip"
+    if zip_path.is_file():
+        return zip_path
+    scene = SynthConfig(camera_count=cameras, seed=seed, rig=RigConfig(width=width, height=height))
+    rig = true_cameras(place_subject(sample_mesh(), scene), scene)
+    target = TargetSynthConfig(frame_count=frames, seed=seed)
+    meta, views, _ = synthesize_calibration(target, cameras=rig)
+    with tempfile.TemporaryDirectory(dir=folder) as tmp:
+        write_capture(Path(tmp) / name, meta, list(views))
+        zip_capture(Path(tmp) / name, Path(tmp) / zip_path.name)
+        (Path(tmp) / zip_path.name).replace(zip_path)
+    return zip_path
+
+
 def wait_job(client: httpx.Client, job_id: str, states: set[str], timeout_s: float,
              headers: dict[str, str] | None = None) -> dict[str, Any]:
     def check() -> dict[str, Any] | None:

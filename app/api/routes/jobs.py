@@ -5,11 +5,12 @@ from __future__ import annotations
 import asyncio
 import time
 from collections.abc import AsyncIterator
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import APIRouter, Path, Query, Request, Response
 from fastapi.responses import StreamingResponse
 from sqlalchemy import bindparam, func, select
+from sqlalchemy.orm import Session
 from starlette.concurrency import run_in_threadpool
 
 from app.api.deps import (
@@ -24,7 +25,7 @@ from app.core.context import Gateway
 from app.core.problems import ProblemError
 from app.schemas import API_PREFIX, ID_PATTERN, JobCreate, JobPage, JobPublic, JobState
 from workers.celery_app import QUEUE_CPU, TASK_STAGE
-from workers.models import TERMINAL_STATES, Capture, Job, new_id, utcnow
+from workers.models import TERMINAL_STATES, Capture, Job, Rig, new_id, utcnow
 
 router = APIRouter(prefix="/jobs", tags=["jobs"])
 
@@ -37,17 +38,38 @@ def _not_found(job_id: str) -> ProblemError:
     return ProblemError(404, f"There is no job {job_id}.", kind="not-found")
 
 
+def _ready_capture(session: Session, capture_id: str) -> Capture:
+    capture = session.get(Capture, capture_id)
+    if capture is None or capture.state == "rejected":
+        raise ProblemError(404, f"There is no capture {capture_id}; upload it with "
+                           "POST /api/v1/captures first.", kind="not-found")
+    if capture.state != "ready":
+        raise ProblemError(409, f"Capture {capture_id} is still being validated; "
+                           "retry when its upload has returned.", kind="capture-not-ready")
+    return capture
+
+
+def _options(session: Session, body: JobCreate) -> dict[str, Any]:
+    """The job's options; a saved rig's poses are copied in, so the job stands on its own."""
+    options = body.options()
+    if body.rig_id is not None:
+        rig = session.get(Rig, body.rig_id)
+        if rig is None:
+            raise ProblemError(404, f"There is no rig {body.rig_id}; upload one with POST "
+                               "/api/v1/rigs first.", kind="not-found")
+        options["world_from_depth"] = rig.document["world_from_depth"]
+    return options
+
+
 def _create(gateway: Gateway, body: JobCreate) -> Job:
     with gateway.sessions() as session:
-        capture = session.get(Capture, body.capture_id)
-        if capture is None or capture.state == "rejected":
-            raise ProblemError(404, f"There is no capture {body.capture_id}; upload it with "
-                               "POST /api/v1/captures first.", kind="not-found")
-        if capture.state != "ready":
-            raise ProblemError(409, f"Capture {body.capture_id} is still being validated; "
-                               "retry when its upload has returned.", kind="capture-not-ready")
-        job = Job(id=new_id(), capture_id=capture.id, options=body.options(), stages=[],
-                  stage_timings={})
+        if body.calibration_capture_id is not None:
+            _ready_capture(session, body.calibration_capture_id)
+        capture_id = body.capture_id or body.calibration_capture_id
+        assert capture_id is not None  # JobCreate requires one of them
+        capture = _ready_capture(session, capture_id)
+        job = Job(id=new_id(), capture_id=capture.id, options=_options(session, body),
+                  stages=[], stage_timings={})
         session.add(job)
         session.commit()
     try:
@@ -72,7 +94,8 @@ def _forget_job(gateway: Gateway, job_id: str) -> None:
             session.commit()
 
 
-@router.post("", status_code=202, response_model=JobPublic, summary="Queue a reconstruction",
+@router.post("", status_code=202, response_model=JobPublic,
+             summary="Queue a reconstruction (or a calibration)",
              responses={401: {}, 404: {}, 409: {}, 422: {}, 503: {}})
 def create_job(body: JobCreate, response: Response, gateway: GatewayDep,
                _key: ApiKeyDep) -> JobPublic:

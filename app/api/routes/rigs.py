@@ -1,0 +1,72 @@
+"""POST /rigs, GET /rigs, GET /rigs/{id}, GET /rigs/{id}/rig.json: saved camera poses.
+
+A rig is uploaded as the rig.json ``volumesh calibrate`` writes, or saved by a job that
+calibrates first (``calibration_capture_id``); later jobs use it with ``rig_id``.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Path, Query, Response
+from fastapi.responses import JSONResponse
+from sqlalchemy import func, select
+
+from app.api.deps import ApiKeyDep, ReadAccessDep, SessionDep
+from app.core.problems import ProblemError
+from app.schemas import API_PREFIX, ID_PATTERN, RigCreate, RigPage, RigPublic
+from workers.models import Rig, new_id
+
+router = APIRouter(prefix="/rigs", tags=["rigs"])
+
+RigId = Annotated[str, Path(pattern=ID_PATTERN, description="A rig id.")]
+
+
+def find_rig(session: SessionDep, rig_id: str) -> Rig:
+    row = session.get(Rig, rig_id)
+    if row is None:
+        raise ProblemError(404, f"There is no rig {rig_id}; upload one with POST "
+                           f"{API_PREFIX}/rigs or calibrate with a job's "
+                           "calibration_capture_id.", kind="not-found")
+    return row
+
+
+@router.post("", status_code=201, response_model=RigPublic, summary="Save a rig file",
+             responses={401: {}, 422: {}})
+def create_rig(body: RigCreate, response: Response, session: SessionDep,
+               _key: ApiKeyDep) -> RigPublic:
+    row = Rig(id=new_id(), name=body.name, cameras=sorted(body.world_from_depth),
+              document=body.document(), source="upload")
+    session.add(row)
+    session.commit()
+    response.headers["Location"] = f"{API_PREFIX}/rigs/{row.id}"
+    return RigPublic.of(row)
+
+
+@router.get("", response_model=RigPage, summary="List rigs, newest first")
+def list_rigs(session: SessionDep, _read: ReadAccessDep,
+              limit: Annotated[int, Query(ge=1, le=100)] = 20,
+              offset: Annotated[int, Query(ge=0, le=1_000_000)] = 0,
+              name: Annotated[str | None, Query(min_length=1, max_length=100)] = None
+              ) -> RigPage:
+    query = select(Rig)
+    if name is not None:
+        query = query.where(Rig.name == name)
+    total = session.scalar(select(func.count()).select_from(query.subquery())) or 0
+    rows = session.scalars(query.order_by(Rig.created_at.desc(), Rig.id).limit(limit)
+                           .offset(offset))
+    return RigPage(items=[RigPublic.of(r) for r in rows], total=total, limit=limit,
+                   offset=offset)
+
+
+@router.get("/{rig_id}", response_model=RigPublic, responses={404: {}})
+def get_rig(rig_id: RigId, session: SessionDep, _read: ReadAccessDep) -> RigPublic:
+    return RigPublic.of(find_rig(session, rig_id))
+
+
+@router.get("/{rig_id}/rig.json", summary="The rig file, as `volumesh calibrate` writes it",
+            responses={200: {"content": {"application/json": {}}}, 404: {}})
+def get_rig_file(rig_id: RigId, session: SessionDep, _read: ReadAccessDep) -> JSONResponse:
+    row = find_rig(session, rig_id)
+    return JSONResponse(row.document, headers={
+        "Content-Disposition": f'attachment; filename="rig-{row.id}.json"'})
