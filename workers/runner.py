@@ -359,6 +359,7 @@ def _report(ctx: WorkerContext, job: JobView, stages: tuple[str, ...], mesh: Any
         "options": job.options,
         "rig_id": job.options.get("rig_id") or (
             job.id if job.options.get("calibration_capture_id") else None),
+        "rig": _rig_summary(ctx, job),
         "stages": list(stages),
         "stage_seconds": seconds,
         "total_seconds": round(sum(seconds.values()), 3),
@@ -376,6 +377,15 @@ def _report(ctx: WorkerContext, job: JobView, stages: tuple[str, ...], mesh: Any
         "config_hash": config_digest,
         "glb_bytes": glb_bytes,
     }
+
+
+def _rig_summary(ctx: WorkerContext, job: JobView) -> dict[str, Any] | None:
+    """The calibrated rig's poses and headline figures (the viewer draws its frusta)."""
+    if not job.options.get("calibration_capture_id"):
+        return None
+    rig = ctx.store.rig(job.id) or {}
+    keep = ("world_from_depth", "reprojection_rms_px", "triangulation_error_mm", "warnings")
+    return {k: rig[k] for k in keep if k in rig}
 
 
 def _put(ctx: WorkerContext, asset_id: str, name: str, data: bytes,

@@ -29,7 +29,8 @@ async function fetchReport(id) {
 const loader = makeGltfLoader();
 const assetId = params.get('asset');
 const early = assetId ? loadAsset(assetId, window.volumeshMeshResponse) : null;
-early?.parsed.catch(() => {}); // handled where awaited; this only silences "unhandled rejection"
+let meshParsed = false;
+early?.parsed.then(() => { meshParsed = true; }, () => {}); // errors are handled where awaited
 
 function loadAsset(id, started = null) {
   const since = started ? window.volumeshMeshStart : performance.now();
@@ -230,6 +231,10 @@ async function main() {
   stats.backend = viewer.backend;
   showStats();
   const page = new Page(viewer);
+  // While the mesh still decodes, a one-pixel draw of its layout (our meshes carry vertex
+  // colours) compiles the shaders; once it is decoded, drawing it at once is quicker.
+  const warm = assetId && !meshParsed
+    ? viewer.warmUp(page.quality.materialFor({ hasColour: true })).catch(() => {}) : null;
   window.volumesh = { viewer, page }; // for the console and for later modules (live preview)
   page.bindControls();
   bindUpload({
@@ -253,6 +258,7 @@ async function main() {
   const sequenceUrl = params.get('sequence');
   const liveUrl = params.get('live');
   if (assetId) {
+    await warm;
     await page.showAsset(assetId, early);
   } else if (sequenceUrl) {
     const player = new SequencePlayer(viewer, page.quality, { onError: (err) => showMessage(err.message) });

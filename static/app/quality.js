@@ -101,6 +101,11 @@ export class QualityView {
     this.viewer.requestRender();
   }
 
+  /** The material a glTF mesh with (or without) vertex colours gets in the current mode. */
+  materialFor({ hasColour = true, hasError = false } = {}) {
+    return this._materialFor({ userData: { hasColour, hasError } });
+  }
+
   _materialFor(mesh) {
     let mode = this.mode;
     if (mode === 'error' && !mesh.userData.hasError) mode = 'colour';
@@ -113,10 +118,12 @@ export class QualityView {
   _build(mode, vertexColors) {
     const common = { side: THREE.DoubleSide, wireframe: this.wireframe };
     if (mode === 'colour') {
+      const colour = { ...common, color: vertexColors ? 0xffffff : 0xb9bec7, vertexColors };
+      // A CPU rasteriser compiles and runs every shader on the CPU: Lambert costs a fraction
+      // of the physically based shader and looks alike on a matte scan.
+      if (this.viewer.software) return new THREE.MeshLambertNodeMaterial(colour);
       // Neutral: no metal (glTF's default metallic 1 renders scans dark), matte.
-      return new THREE.MeshStandardNodeMaterial({
-        ...common, color: vertexColors ? 0xffffff : 0xb9bec7, vertexColors, metalness: 0, roughness: 0.8,
-      });
+      return new THREE.MeshStandardNodeMaterial({ ...colour, metalness: 0, roughness: 0.8 });
     }
     const material = new THREE.MeshBasicNodeMaterial(common);
     if (mode === 'normals') material.colorNode = normalize(normalWorld).mul(0.5).add(0.5);

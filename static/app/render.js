@@ -174,6 +174,39 @@ export class Viewer {
     this.requestRender();
   }
 
+  /**
+   * Draws one pixel of a triangle with POSITION, NORMAL and (when `colour`) 8-bit COLOR_0 in
+   * `material`, the layout our meshes have. Run while the mesh still downloads and decodes, it
+   * takes the pipeline compile off the first frame's path, and with it the shader JIT that a
+   * software rasteriser (SwiftShader) does only when it first draws.
+   */
+  async warmUp(material, { colour = true } = {}) {
+    performance.mark('vm:warm-start');
+    const geometry = new THREE.BufferGeometry();
+    // Camera-local, in front of the near plane and covering the view: the scissored pixel
+    // is always inside it.
+    const corners = new Float32Array([-100, -100, -1, 100, -100, -1, 0, 100, -1]);
+    geometry.setAttribute('position', new THREE.BufferAttribute(corners, 3));
+    geometry.setAttribute('normal', new THREE.BufferAttribute(new Float32Array([0, 0, 1, 0, 0, 1, 0, 0, 1]), 3));
+    if (colour) geometry.setAttribute('color', new THREE.BufferAttribute(new Uint8Array(9).fill(29), 3, true));
+    geometry.setIndex(new THREE.BufferAttribute(new Uint32Array([0, 1, 2]), 1));
+    const probe = new THREE.Mesh(geometry, material);
+    this.camera.add(probe);
+    const r = this.renderer;
+    r.setScissorTest(true);
+    r.setScissor(0, 0, 1, 1);
+    try {
+      await r.compileAsync(this.scene, this.camera);
+      r.render(this.scene, this.camera);
+      await this._gpuDone();
+    } finally {
+      r.setScissorTest(false);
+      this.camera.remove(probe);
+      geometry.dispose();
+    }
+    performance.mark('vm:warm-done');
+  }
+
   requestRender() {
     if (this._pending) return;
     this._pending = true;

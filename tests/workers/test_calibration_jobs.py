@@ -105,6 +105,7 @@ def test_a_job_calibrates_first_and_saves_the_rig(service: Service) -> None:
         assert np.abs(found[camera][:3, 3] - truth[camera][:3, 3]).max() < 0.005, camera
     report = service.client.get(job["links"]["report"]).json()
     assert report["rig_id"] == job["id"]
+    assert report["rig"]["world_from_depth"] == rig["world_from_depth"]  # the viewer's frusta
     check_draco_glb(service.client.get(job["links"]["mesh_glb"]).content)
 
 
