@@ -96,7 +96,9 @@ class JobCreate(BaseModel):
     capture_id: str | None = Field(
         default=None, pattern=ID_PATTERN,
         description="Id returned by POST /captures; may be left out of a calibration-only job.")
-    enhance: bool = Field(default=True, description="Run the LDM enhancement stage (gpu queue).")
+    enhance: bool = Field(
+        default=False, description="Run the LDM enhancement stage (gpu queue). Off by default: "
+        "the shipped model does not yet improve reconstructions (see the README).")
     target_edge_length_m: float | None = Field(
         default=None, gt=0.0005, le=0.5, description="Remeshing target edge length, metres.")
     voxel_size_m: float | None = Field(
@@ -126,6 +128,9 @@ class JobCreate(BaseModel):
     voxel_refine: StageSettings | None = Field(default=None, description=_SECTION)
     meshing: StageSettings | None = Field(default=None, description=_SECTION)
     remesh: StageSettings | None = Field(default=None, description=_SECTION)
+    enhancement: dict[str, bool | int | float | str] | None = Field(
+        default=None, description="Enhance stage settings by field name (method: ldm, "
+        "regressor, views, taubin, laplacian, bilateral; views; resolution; steps; strength).")
     colorize: StageSettings | None = Field(default=None, description=_SECTION)
     draco_position_bits: int | None = Field(
         default=None, ge=8, le=30, description="Draco position quantisation bits.")

@@ -14,6 +14,7 @@ Stages (in order):
   refine    the same keys, only the points of each voxel's chosen camera
   mesh      vertices_m (V, 3), faces (F, 3): Poisson-disk samples, screened Poisson
   remesh    vertices_m, faces: isotropic remeshing with angle criteria
+  enhance   vertices_m moved to LDM-enhanced depth views (only when ``enhance`` is set)
   colorize  vertices_m, faces, vertex_normals, vertex_colors (when the capture has colour)
 Each stage may also write ``stats_<stage>``: a 0-d string array holding JSON figures.
 """
@@ -37,6 +38,7 @@ from pipeline.capture import CameraInfo, CaptureMeta, View
 from pipeline.colorize import ColorizeConfig, ColorView, colorize_mesh
 from pipeline.crop import CropConfig, crop_mask
 from pipeline.depth_filter import DepthFilterConfig, filter_depth
+from pipeline.enhance.config import EnhanceConfig
 from pipeline.mesh import TriangleMesh, vertex_normals
 from pipeline.meshing import MeshingConfig, mesh_cloud
 from pipeline.registration import RegistrationConfig, ray_image, register_view
@@ -47,7 +49,8 @@ Progress = Callable[[float], None]
 Artifacts = dict[str, NDArray[Any]]
 
 STAGES: tuple[str, ...] = ("filter", "align", "register", "refine", "mesh", "remesh",
-                           "colorize")
+                           "enhance", "colorize")
+ENHANCE_STAGE = "enhance"
 _RIGID_TOLERANCE = 1e-3
 
 
@@ -84,7 +87,10 @@ class ReconstructConfig:
     frame_index: int | None = None
     """The capture frame to reconstruct; None: the first one."""
     enhance: bool = False
-    """LDM enhancement (issue 4); no enhancement stage exists yet, so this is recorded only."""
+    """Run the enhance stage. Off by default: the shipped model does not yet improve a
+    reconstruction (README, issue 4)."""
+    enhancement: EnhanceConfig = field(default_factory=EnhanceConfig)
+    """How the enhance stage works (method, views, resolution, DDIM steps...)."""
     world_from_depth: tuple[tuple[str, tuple[float, ...]], ...] = ()
     """Camera poses that replace the capture's: (camera id, 16 row-major values) pairs,
     e.g. from a calibration's rig.json."""
@@ -98,7 +104,7 @@ class ReconstructConfig:
 # ----------------------------------------------------------------------------- options
 
 _SECTIONS = {"depth_filter", "align", "registration", "crop", "voxel_refine",
-             "meshing", "remesh", "colorize"}
+             "meshing", "remesh", "enhancement", "colorize"}
 
 
 def _coerce(value: Any, current: Any, name: str) -> Any:
@@ -116,6 +122,10 @@ def _coerce(value: Any, current: Any, name: str) -> Any:
         if not np.isfinite(value):
             raise ValueError(f"{name}: must be finite")
         return float(value)
+    if isinstance(current, str):
+        if not isinstance(value, str):
+            raise ValueError(f"{name}: expected a string, got {value!r}")
+        return value
     if isinstance(current, tuple):
         if not isinstance(value, list | tuple):
             raise ValueError(f"{name}: expected a list, got {value!r}")
@@ -392,6 +402,19 @@ def _stage_remesh(capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],
     return result | _stats("remesh", stats)
 
 
+def _stage_enhance(capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],
+                   config: ReconstructConfig, progress: Progress | None) -> Artifacts:
+    from pipeline.enhance import enhance_mesh
+
+    mesh = mesh_from_artifacts(inputs)
+    out = enhance_mesh(mesh, config.enhancement, progress)
+    moved_m = np.linalg.norm(out.vertices_m - mesh.vertices_m, axis=1)
+    result: Artifacts = {"vertices_m": out.vertices_m, "faces": out.faces}
+    return result | _stats("enhance", {
+        "method": config.enhancement.method, "views": config.enhancement.views,
+        "mean_move_m": float(moved_m.mean()), "max_move_m": float(moved_m.max())})
+
+
 def _stage_colorize(capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],
                     config: ReconstructConfig, progress: Progress | None) -> Artifacts:
     mesh = mesh_from_artifacts(inputs)
@@ -415,7 +438,8 @@ def _stage_colorize(capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],
 
 _STAGE_FUNCTIONS = {"filter": _stage_filter, "align": _stage_align,
                     "register": _stage_register, "refine": _stage_refine,
-                    "mesh": _stage_mesh, "remesh": _stage_remesh, "colorize": _stage_colorize}
+                    "mesh": _stage_mesh, "remesh": _stage_remesh, "enhance": _stage_enhance,
+                    "colorize": _stage_colorize}
 
 
 def run_stage(name: str, capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],
@@ -448,6 +472,11 @@ def stage_stats(artifacts: Mapping[str, NDArray[Any]]) -> dict[str, Any]:
             for key, value in artifacts.items() if key.startswith("stats_")}
 
 
+def planned_stages(config: ReconstructConfig) -> tuple[str, ...]:
+    """The stages a reconstruction with this config runs (enhance only when asked)."""
+    return tuple(s for s in STAGES if config.enhance or s != ENHANCE_STAGE)
+
+
 def reconstruct(capture: CaptureReader, config: ReconstructConfig,
                 progress: Progress | None = None,
                 on_stage: Callable[[str], None] | None = None
@@ -458,15 +487,16 @@ def reconstruct(capture: CaptureReader, config: ReconstructConfig,
     starts.
     """
     check_capture(capture, config)
+    stages = planned_stages(config)
     artifacts: Artifacts = {}
     seconds: dict[str, float] = {}
     cpu_seconds: dict[str, float] = {}
-    for index, name in enumerate(STAGES):
+    for index, name in enumerate(stages):
         if on_stage is not None:
             on_stage(name)
 
         def stage_progress(fraction: float, index: int = index) -> None:
-            _tick(progress, (index + fraction) / len(STAGES))
+            _tick(progress, (index + fraction) / len(stages))
 
         started, cpu_started = time.perf_counter(), _cpu_seconds()
         artifacts.update(run_stage(name, capture, artifacts, config, stage_progress))
@@ -475,15 +505,14 @@ def reconstruct(capture: CaptureReader, config: ReconstructConfig,
         _drop_consumed(artifacts, name)
     mesh = mesh_from_artifacts(artifacts)
     stats = stage_stats(artifacts)
-    report = {"stages": list(STAGES), "stage_seconds": seconds,
+    report = {"stages": list(stages), "stage_seconds": seconds,
               "total_seconds": round(sum(seconds.values()), 3),
               "stage_cpu_seconds": cpu_seconds,
               "points": stats.get("register", {}).get("points"),
               "refined_points": stats.get("refine", {}).get("points"),
               "samples": stats.get("mesh", {}).get("samples"),
               "vertices": mesh.vertex_count, "triangles": mesh.face_count,
-              "enhance": {"requested": config.enhance, "applied": False,
-                          "note": "no enhancement stage yet (issue 4)"},
+              "enhance": {"requested": config.enhance, "applied": ENHANCE_STAGE in stages},
               "stage_stats": stats, "config_hash": config_hash(config)}
     return mesh, report
 

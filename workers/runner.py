@@ -103,7 +103,7 @@ def plan_stages(options: dict[str, Any]) -> list[str]:
     first = [CALIBRATE_STAGE] if options.get("calibration_capture_id") else []
     if options.get("calibrate_only"):
         return first
-    stages = [s for s in STAGES if options.get("enhance", True) or s != ENHANCE_STAGE]
+    stages = [s for s in STAGES if options.get("enhance", False) or s != ENHANCE_STAGE]
     return [*first, *stages, EXPORT_STAGE]
 
 
@@ -113,9 +113,10 @@ def _artifact_key(sha256: str, index: int, stage: str, chain: str) -> str:
 
 SECTION_FIRST_STAGE = {"depth_filter": "filter", "align": "align", "registration": "register",
                        "crop": "register", "voxel_refine": "refine", "meshing": "mesh",
-                       "remesh": "remesh", "colorize": "colorize"}
-"""The first stage that reads each config section. A section missing here counts as read by
-every stage: reuse is then lost, never wrong."""
+                       "remesh": "remesh", "enhance": "enhance", "enhancement": "enhance",
+                       "colorize": "colorize"}
+"""The first stage that reads each config field. A field missing here counts as read by every
+stage (reuse is then lost, never wrong); one whose reader is not planned, by none."""
 
 
 def stage_keys(stages: tuple[str, ...], config: Any) -> list[str]:
@@ -125,8 +126,8 @@ def stage_keys(stages: tuple[str, ...], config: Any) -> list[str]:
 
     whole = dataclasses.asdict(config)
     position = {stage: i for i, stage in enumerate(stages)}
-    first_reader = {name: position.get(SECTION_FIRST_STAGE.get(name, ""), 0)
-                    for name, value in whole.items() if isinstance(value, dict)}
+    first_reader = {name: position.get(SECTION_FIRST_STAGE[name], len(stages))
+                    for name in whole if name in SECTION_FIRST_STAGE}
     keys = []
     for index, stage in enumerate(stages):
         seen = {name: value for name, value in whole.items()

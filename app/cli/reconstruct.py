@@ -49,8 +49,9 @@ def reconstruct(
         "--ground-truth", help="Ground-truth mesh in world coordinates (e.g. the "
         "ground_truth.ply of `volumesh synth`) for accuracy figures.")] = None,
     enhance: Annotated[bool, typer.Option(
-        "--enhance/--no-enhance", help="LDM enhancement. Not available yet: the default is "
-        "no enhancement, and --enhance is refused.")] = False,
+        "--enhance/--no-enhance", help="LDM enhancement of the remeshed surface. Off by "
+        "default: the shipped model does not yet improve reconstructions (see the README).")
+        ] = False,
     rig: Annotated[Path | None, typer.Option(
         "--rig", help="rig.json whose world_from_depth poses replace the capture's.")] = None,
     frame: Annotated[int | None, typer.Option(
@@ -64,18 +65,16 @@ def reconstruct(
     from pipeline.io.capture_io import open_capture
     from pipeline.io.gltf_io import write_mesh
     from pipeline.reconstruct import (
-        STAGES,
         check_capture,
         config_from_options,
+        planned_stages,
         posed_cameras,
     )
     from pipeline.reconstruct import reconstruct as run_pipeline
 
     if out.suffix.lower() not in (".glb", ".ply"):
         raise ValueError(f"--out: {out} must end in .glb or .ply")
-    if enhance:
-        raise ValueError("--enhance: LDM enhancement is not available yet; use --no-enhance")
-    config = config_from_options(_options(rig, frame, edge_length_mm))
+    config = config_from_options({**_options(rig, frame, edge_length_mm), "enhance": enhance})
     truth = None
     if ground_truth is not None:
         from pipeline.io.mesh_io import read_mesh
@@ -83,7 +82,8 @@ def reconstruct(
         truth = read_mesh(ground_truth)
     with open_capture(capture) as reader:
         check_capture(reader, config)
-        bar = tqdm(total=len(STAGES), desc="reconstruct", unit="stage", leave=False)
+        bar = tqdm(total=len(planned_stages(config)), desc="reconstruct", unit="stage",
+                   leave=False)
         begun: list[str] = []
 
         def on_stage(name: str) -> None:

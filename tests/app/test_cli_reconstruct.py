@@ -62,6 +62,19 @@ def test_reconstruct_writes_a_glb_and_a_report(capture: Path, tmp_path: Path) ->
         assert key in accuracy["result_to_gt"] and key in accuracy["gt_to_result"]
 
 
+def test_reconstruct_enhances_when_asked(capture: Path, tmp_path: Path) -> None:
+    out, report = tmp_path / "mesh.ply", tmp_path / "report.json"
+    result = _run_cli("reconstruct", str(capture), "--out", str(out), "--report", str(report),
+                      "--edge-length-mm", "30", "--enhance")
+    assert result.returncode == 0, result.stderr
+    figures = json.loads(report.read_text())
+    assert figures["enhance"] == {"requested": True, "applied": True}
+    assert figures["stages"].index("enhance") == figures["stages"].index("remesh") + 1
+    moved = figures["stage_stats"]["enhance"]
+    assert moved["method"] == "ldm" and 0 < moved["mean_move_m"] < 0.05
+    assert read_mesh(out).face_count == figures["triangles"]
+
+
 def test_reconstruct_writes_ply(capture: Path, tmp_path: Path) -> None:
     out = tmp_path / "mesh.ply"
     result = _run_cli("reconstruct", str(capture), "--out", str(out), "--edge-length-mm", "30")
@@ -72,7 +85,6 @@ def test_reconstruct_writes_ply(capture: Path, tmp_path: Path) -> None:
 @pytest.mark.parametrize("args, fragment", [
     (["reconstruct", "/nonexistent/capture", "--out", "x.glb"], "/nonexistent/capture"),
     (["reconstruct", "{capture}", "--out", "mesh.obj"], "--out"),
-    (["reconstruct", "{capture}", "--out", "x.glb", "--enhance"], "--enhance"),
     (["reconstruct", "{capture}", "--out", "x.glb", "--frame", "9"], "frame"),
     (["reconstruct", "{capture}", "--out", "x.glb", "--edge-length-mm", "-1"],
      "--edge-length-mm"),

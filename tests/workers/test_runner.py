@@ -14,9 +14,9 @@ def keys(**options: object) -> list[str]:
 
 def test_every_config_section_is_mapped_to_a_pipeline_stage() -> None:
     # An unmapped section is safe (counted as read by every stage) but loses reuse.
-    sections = {name for name, value in dataclasses.asdict(ReconstructConfig()).items()
-                if isinstance(value, dict)}
-    assert sections == set(SECTION_FIRST_STAGE)
+    fields = dataclasses.asdict(ReconstructConfig())
+    sections = {name for name, value in fields.items() if isinstance(value, dict)}
+    assert sections <= set(SECTION_FIRST_STAGE) <= set(fields)
     assert set(SECTION_FIRST_STAGE.values()) <= set(STAGES)
 
 
@@ -46,7 +46,21 @@ def test_a_setting_changes_its_stage_and_later_ones() -> None:
 def test_plans_end_with_export_and_drop_enhance_when_off() -> None:
     assert plan_stages({"enhance": False})[-1] == "export"
     assert "enhance" not in plan_stages({"enhance": False})
-    assert plan_stages({})[:-1] == list(STAGES)
+    assert plan_stages({}) == plan_stages({"enhance": False})
+    assert plan_stages({"enhance": True})[:-1] == list(STAGES)
+    assert plan_stages({"calibration_capture_id": "c" * 32})[0] == "calibrate"
+    assert plan_stages({"calibration_capture_id": "c" * 32, "calibrate_only": True}) == \
+        ["calibrate"]
+
+
+def test_turning_enhancement_on_keeps_the_stages_before_it() -> None:
+    off = plan_stages({})[:-1]
+    on = plan_stages({"enhance": True})[:-1]
+    off_keys = stage_keys(tuple(off), config_from_options({}))
+    on_keys = stage_keys(tuple(on), config_from_options({"enhance": True}))
+    at = on.index("enhance")
+    assert on_keys[:at] == off_keys[:at]
+    assert on_keys[at + 1] != off_keys[at]  # colorize comes after the moved vertices
 
 
 def test_the_api_offers_every_config_section() -> None:
