@@ -35,6 +35,10 @@ class EnhanceConfig:
     """Iterations of the classical smoothers."""
     update: UpdateConfig = field(default_factory=UpdateConfig)
     """How vertices follow the enhanced depth."""
+    remesh_iterations: int = 1
+    """Rounds of a light isotropic remesh at the mesh's own mean edge length after the
+    view-based update, whose independent vertex moves can leave slivers and folds; 0 keeps
+    the connectivity."""
     device: str = "auto"
     """Torch device for the networks: auto (CUDA when present), cpu or cuda."""
     weights: dict[str, bytes] | None = None
@@ -55,6 +59,8 @@ def validate_config(config: EnhanceConfig) -> None:
         raise ValueError(f"strength must be in (0, 1], got {config.strength}")
     if config.iterations < 0:
         raise ValueError(f"iterations must be >= 0, got {config.iterations}")
+    if config.remesh_iterations < 0:
+        raise ValueError(f"remesh_iterations must be >= 0, got {config.remesh_iterations}")
 
 
 def enhance_mesh(
@@ -62,7 +68,8 @@ def enhance_mesh(
     config: EnhanceConfig,
     progress: Callable[[float], None] | None = None,
 ) -> TriangleMesh:
-    """The mesh with vertices moved (connectivity, hence manifoldness, is kept)."""
+    """The mesh with vertices moved; the view-based methods end with a light remesh
+    (``remesh_iterations``), the smoothers keep the connectivity."""
     from pipeline.enhance import baselines
 
     validate_config(config)
@@ -82,9 +89,24 @@ def enhance_mesh(
     if progress is not None:
         progress(0.8)
     result, _ = update_vertices(mesh, renders, enhanced, config.update)
+    if config.remesh_iterations > 0:
+        result = light_remesh(result, config.remesh_iterations)
     if progress is not None:
         progress(1.0)
     return result
+
+
+def light_remesh(mesh: TriangleMesh, iterations: int) -> TriangleMesh:
+    """The mesh remeshed at its own mean edge length (vertices projected back onto it)."""
+    from pipeline.remesh import RemeshConfig, remesh
+
+    edges = np.concatenate([mesh.faces[:, [0, 1]], mesh.faces[:, [1, 2]], mesh.faces[:, [2, 0]]])
+    lengths_m = np.linalg.norm(mesh.vertices_m[edges[:, 0]] - mesh.vertices_m[edges[:, 1]],
+                               axis=1)
+    config = RemeshConfig(target_edge_length_m=float(lengths_m.mean()), iterations=iterations,
+                          min_component_share=0.0)
+    out, _ = remesh(mesh, config)
+    return out
 
 
 def enhance_renders(renders: DepthRenders, config: EnhanceConfig) -> NDArray[np.float32]:
