@@ -98,6 +98,12 @@ class _Scene:
         return answer["t_hit"].numpy().astype(np.float64)
 
 
+def signed_distances_m(points_m: FloatArray, mesh: TriangleMesh) -> FloatArray:
+    """(N,) signed distance of each point to the mesh's surface, metres (positive outside)."""
+    signed, _, _ = _Scene(mesh).closest(np.asarray(points_m, dtype=np.float64))
+    return signed
+
+
 def distance_figures(signed_m: FloatArray) -> dict[str, float]:
     """Signed mean, std, RMS, 95th percentile of |d| and max |d| of signed distances, metres."""
     absolute = np.abs(signed_m)

@@ -41,6 +41,7 @@ from pipeline.depth_filter import DepthFilterConfig, filter_depth
 from pipeline.enhance.config import EnhanceConfig
 from pipeline.mesh import TriangleMesh, vertex_normals
 from pipeline.meshing import MeshingConfig, mesh_cloud
+from pipeline.metrics import signed_distances_m
 from pipeline.registration import RegistrationConfig, ray_image, register_view
 from pipeline.remesh import RemeshConfig, remesh
 from pipeline.voxel_refine import VoxelRefineConfig, refine_mask
@@ -408,11 +409,14 @@ def _stage_enhance(capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],
 
     mesh = mesh_from_artifacts(inputs)
     out = enhance_mesh(mesh, config.enhancement, progress)
-    moved_m = np.linalg.norm(out.vertices_m - mesh.vertices_m, axis=1)
+    # The light remesh renumbers vertices: how far the surface moved is measured against
+    # the surface before, not vertex by vertex.
+    offset_m = np.abs(signed_distances_m(out.vertices_m, mesh))
     result: Artifacts = {"vertices_m": out.vertices_m, "faces": out.faces}
     return result | _stats("enhance", {
         "method": config.enhancement.method, "views": config.enhancement.views,
-        "mean_move_m": float(moved_m.mean()), "max_move_m": float(moved_m.max())})
+        "triangles": out.face_count, "mean_offset_m": float(offset_m.mean()),
+        "max_offset_m": float(offset_m.max())})
 
 
 def _stage_colorize(capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],

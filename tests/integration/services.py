@@ -224,6 +224,31 @@ def create_key(env: dict[str, str], name: str = "test") -> str:
     return result.stdout.strip().splitlines()[-1]
 
 
+@contextlib.contextmanager
+def gateway_client(values: dict[str, str]) -> Iterator[tuple[Any, dict[str, str]]]:
+    """The gateway in this process (a TestClient) on the settings ``values``, and the
+    Authorization header of a fresh API key."""
+    from fastapi.testclient import TestClient
+
+    from app.core.security import create_key
+    from app.main import create_app
+    from workers.settings import Settings
+
+    app = create_app(Settings.model_validate(values), viewer=False)
+    with TestClient(app) as client:
+        with app.state.gateway.sessions() as session:
+            _, key = create_key(session, "tests")
+        yield client, {"Authorization": f"Bearer {key}"}
+
+
+def upload_capture(client: Any, auth: dict[str, str], zip_path: Path) -> str:
+    """POSTs a capture zip; returns its id (fails the test unless the answer is 201)."""
+    response = client.post("/api/v1/captures", content=zip_path.read_bytes(),
+                           headers={**auth, "Content-Type": "application/zip"})
+    assert response.status_code == 201, response.text
+    return str(response.json()["id"])
+
+
 def make_capture_zip(folder: Path, cameras: int = 4, width: int = 160, height: int = 144,
                      frames: int = 1, seed: int = 0) -> Path:
     """A synthetic capture of the built-in subject, packed as a zip (cached per parameters)."""

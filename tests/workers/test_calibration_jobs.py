@@ -14,20 +14,19 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from app.core.security import create_key
-from app.main import create_app
 from tests.integration.services import (
     FAST_JOB,
     Process,
     base_env,
     check_draco_glb,
+    gateway_client,
     make_calibration_zip,
     make_capture_zip,
+    upload_capture,
     wait_job,
     wait_worker_ready,
     worker,
 )
-from workers.settings import Settings
 
 pytestmark = pytest.mark.slow
 
@@ -47,13 +46,6 @@ class Service:
         return wait_job(self.client, response.json()["id"], {"succeeded", "failed"}, 180)
 
 
-def _upload(client: TestClient, auth: dict[str, str], data: bytes) -> str:
-    response = client.post("/api/v1/captures", content=data,
-                           headers={**auth, "Content-Type": "application/zip"})
-    assert response.status_code == 201, response.text
-    return str(response.json()["id"])
-
-
 def _capture_poses(zip_bytes: bytes) -> dict[str, np.ndarray]:
     import json
 
@@ -68,17 +60,13 @@ def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Service]:
     folder = tmp_path_factory.mktemp("calibration-jobs")
     values = {"data_dir": str(folder / "data")}
     proc = worker(base_env(**values), folder / "worker.log").start()
-    app = create_app(Settings.model_validate(values), viewer=False)
-    with TestClient(app) as client:
-        with app.state.gateway.sessions() as session:
-            _, key = create_key(session, "tests")
-        auth = {"Authorization": f"Bearer {key}"}
+    with gateway_client(values) as (client, auth):
         wait_worker_ready(proc)
-        subject = make_capture_zip(folder, cameras=4, width=160, height=144).read_bytes()
+        subject = make_capture_zip(folder, cameras=4, width=160, height=144)
         calibration = make_calibration_zip(folder, cameras=4, width=160, height=144)
-        yield Service(client, auth, _upload(client, auth, subject),
-                      _upload(client, auth, calibration.read_bytes()),
-                      _capture_poses(subject), proc)
+        yield Service(client, auth, upload_capture(client, auth, subject),
+                      upload_capture(client, auth, calibration),
+                      _capture_poses(subject.read_bytes()), proc)
     proc.stop()
 
 

@@ -10,18 +10,17 @@ from typing import Any
 import pytest
 from fastapi.testclient import TestClient
 
-from app.core.security import create_key
-from app.main import create_app
 from tests.integration.services import (
     FAST_JOB,
     Process,
     base_env,
+    gateway_client,
     make_capture_zip,
+    upload_capture,
     wait_job,
     wait_worker_ready,
     worker,
 )
-from workers.settings import Settings
 
 pytestmark = pytest.mark.slow
 
@@ -46,17 +45,10 @@ def rig(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Rig]:
     values = {"data_dir": str(folder / "data"), "task_soft_time_limit_s": "1",
               "task_time_limit_s": "60"}
     proc = worker(base_env(**values), folder / "worker.log").start()
-    app = create_app(Settings.model_validate(values), viewer=False)
-    with TestClient(app) as client:
-        with app.state.gateway.sessions() as session:
-            _, key = create_key(session, "tests")
-        auth = {"Authorization": f"Bearer {key}"}
+    with gateway_client(values) as (client, auth):
         wait_worker_ready(proc)
         capture = make_capture_zip(folder, cameras=2, width=96, height=80)
-        upload = client.post("/api/v1/captures", content=capture.read_bytes(),
-                             headers={**auth, "Content-Type": "application/zip"})
-        assert upload.status_code == 201, upload.text
-        yield Rig(client, auth, upload.json()["id"], proc)
+        yield Rig(client, auth, upload_capture(client, auth, capture), proc)
     proc.stop()
 
 
