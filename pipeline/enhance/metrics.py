@@ -6,6 +6,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from pipeline.mesh import TriangleMesh, face_normals, vertex_normals
+from pipeline.metrics import signed_distances_m
 
 
 def _closest(reference: TriangleMesh, points_m: NDArray[np.float64]):
@@ -25,12 +26,7 @@ def signed_c2m(points_m: NDArray[np.float64], reference: TriangleMesh) -> NDArra
 
     This is what CloudCompare's C2M reports with signed distances on.
     """
-    closest, prim = _closest(reference, points_m)
-    d = points_m - closest
-    dist = np.linalg.norm(d, axis=1)
-    n = face_normals(reference.vertices_m, reference.faces)[prim]
-    sign = np.where(np.sum(d * n, axis=1) < 0, -1.0, 1.0)
-    return sign * dist
+    return signed_distances_m(points_m, reference)
 
 
 def c2m_summary(result: TriangleMesh, truth: TriangleMesh) -> dict[str, float]:

@@ -72,7 +72,8 @@ def test_tiny_models_enhance_a_mesh_deterministically(pairs):
         ),
     }
     mesh = sphere(0.5, 12)
-    base = EnhanceConfig(views=6, resolution=32, steps=2, weights=weights)
+    # No light remesh: the checks below compare vertex by vertex.
+    base = EnhanceConfig(views=6, resolution=32, steps=2, weights=weights, remesh_iterations=0)
     a = enhance_mesh(mesh, base)
     b = enhance_mesh(mesh, base)
     assert np.array_equal(a.vertices_m, b.vertices_m)
