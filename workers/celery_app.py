@@ -16,6 +16,7 @@ from typing import Any
 from celery import Celery
 from kombu import Exchange, Queue
 
+from workers import fs_broker
 from workers.settings import Settings, get_settings
 
 QUEUE_CPU = "cpu"
@@ -37,7 +38,7 @@ def _embedded_broker(settings: Settings) -> tuple[str, dict[str, Any]]:
     folder = settings.broker_dir.resolve()
     for sub in ("queue", "processed", "control"):
         (folder / sub).mkdir(parents=True, exist_ok=True)
-    return "filesystem://localhost//", {
+    return f"{fs_broker.SCHEME}://localhost//", {
         "data_folder_in": str(folder / "queue"),
         "data_folder_out": str(folder / "queue"),
         "processed_folder": str(folder / "processed"),
