@@ -194,8 +194,10 @@ class JobPublic(BaseModel):
                  "events": f"{API_PREFIX}/jobs/{row.id}/events",
                  "capture": f"{API_PREFIX}/captures/{row.capture_id}"}
         options = row.options or {}
-        if options.get("rig_id") or options.get("calibration_capture_id"):
-            links["rig"] = f"{API_PREFIX}/rigs/{options.get('rig_id') or row.id}"
+        if options.get("rig_id"):
+            links["rig"] = f"{API_PREFIX}/rigs/{options['rig_id']}"
+        elif options.get("calibration_capture_id") and row.done_count > 0:
+            links["rig"] = f"{API_PREFIX}/rigs/{row.id}"  # saved once calibrate (stage 0) is done
         if row.asset_id:
             base = f"{API_PREFIX}/assets/{row.asset_id}"
             links.update({"asset": base, "mesh_glb": f"{base}/mesh.glb",

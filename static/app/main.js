@@ -214,8 +214,10 @@ async function rawMeshUrl(id, report) {
 
 function jobItem(job) {
   const item = document.createElement('li');
-  const name = job.asset_id ? document.createElement('a') : document.createElement('span');
-  if (job.asset_id) name.href = `/?asset=${encodeURIComponent(job.asset_id)}`;
+  // A job's mesh opens in the viewer; a job that only calibrated links to its rig file.
+  const href = job.asset_id ? `/?asset=${encodeURIComponent(job.asset_id)}` : job.links?.rig ?? null;
+  const name = href ? document.createElement('a') : document.createElement('span');
+  if (href) name.href = href;
   name.textContent = String(job.id).slice(0, 12);
   const state = document.createElement('span');
   state.className = `job-state job-${job.state}`;

@@ -121,6 +121,7 @@ def test_a_capture_without_a_target_fails_the_calibration_with_why(service: Serv
     job = service.run(calibration_capture_id=service.subject_id)
     assert job["state"] == "failed"
     assert "target" in job["error"], job["error"]
+    assert "rig" not in job["links"]  # no rig was saved
     assert service.worker.alive
 
 
