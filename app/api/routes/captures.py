@@ -14,12 +14,13 @@ import time
 from datetime import UTC, datetime
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Path, Query, Request, Response
-from sqlalchemy import func, select
+from fastapi import APIRouter, Path, Request, Response
+from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError
 from starlette.concurrency import run_in_threadpool
 
 from app.api.deps import ApiKeyDep, GatewayDep, ReadAccessDep, SessionDep
+from app.api.pagination import PageLimit, PageOffset, fetch_page
 from app.core.context import Gateway
 from app.core.problems import ProblemError
 from app.core.uploads import ReceivedUpload, receive_upload
@@ -166,12 +167,9 @@ def get_capture(capture_id: CaptureId, session: SessionDep,
 
 
 @router.get("", response_model=CapturePage)
-def list_captures(session: SessionDep, _read: ReadAccessDep,
-                  limit: Annotated[int, Query(ge=1, le=100)] = 20,
-                  offset: Annotated[int, Query(ge=0, le=1_000_000)] = 0) -> CapturePage:
-    ready = Capture.state == "ready"
-    total = session.scalar(select(func.count()).select_from(Capture).where(ready)) or 0
-    rows = session.scalars(select(Capture).where(ready).order_by(Capture.created_at.desc())
-                           .limit(limit).offset(offset))
+def list_captures(session: SessionDep, _read: ReadAccessDep, limit: PageLimit = 20,
+                  offset: PageOffset = 0) -> CapturePage:
+    query = select(Capture).where(Capture.state == "ready")
+    rows, total = fetch_page(session, query, (Capture.created_at.desc(),), limit, offset)
     return CapturePage(items=[CapturePublic.of(r) for r in rows], total=total, limit=limit,
                        offset=offset)

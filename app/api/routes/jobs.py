@@ -9,7 +9,7 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, Path, Query, Request, Response
 from fastapi.responses import StreamingResponse
-from sqlalchemy import bindparam, func, select
+from sqlalchemy import bindparam, select
 from sqlalchemy.orm import Session
 from starlette.concurrency import run_in_threadpool
 
@@ -21,6 +21,7 @@ from app.api.deps import (
     SessionDep,
     read_access,
 )
+from app.api.pagination import PageLimit, PageOffset, fetch_page
 from app.core.context import Gateway
 from app.core.problems import ProblemError
 from app.schemas import API_PREFIX, ID_PATTERN, JobCreate, JobPage, JobPublic, JobState
@@ -105,19 +106,15 @@ def create_job(body: JobCreate, response: Response, gateway: GatewayDep,
 
 
 @router.get("", response_model=JobPage, summary="List jobs, newest first")
-def list_jobs(session: SessionDep, _read: ReadAccessDep,
-              limit: Annotated[int, Query(ge=1, le=100)] = 20,
-              offset: Annotated[int, Query(ge=0, le=1_000_000)] = 0,
-              state: JobState | None = None,
+def list_jobs(session: SessionDep, _read: ReadAccessDep, limit: PageLimit = 20,
+              offset: PageOffset = 0, state: JobState | None = None,
               capture_id: Annotated[str | None, Query(pattern=ID_PATTERN)] = None) -> JobPage:
     query = select(Job)
     if state is not None:
         query = query.where(Job.state == state)
     if capture_id is not None:
         query = query.where(Job.capture_id == capture_id)
-    total = session.scalar(select(func.count()).select_from(query.subquery())) or 0
-    rows = session.scalars(query.order_by(Job.created_at.desc(), Job.id).limit(limit)
-                           .offset(offset))
+    rows, total = fetch_page(session, query, (Job.created_at.desc(), Job.id), limit, offset)
     return JobPage(items=[JobPublic.of(r) for r in rows], total=total, limit=limit,
                    offset=offset)
 

@@ -10,9 +10,10 @@ from typing import Annotated
 
 from fastapi import APIRouter, Path, Query, Response
 from fastapi.responses import JSONResponse
-from sqlalchemy import func, select
+from sqlalchemy import select
 
 from app.api.deps import ApiKeyDep, ReadAccessDep, SessionDep
+from app.api.pagination import PageLimit, PageOffset, fetch_page
 from app.core.problems import ProblemError
 from app.schemas import API_PREFIX, ID_PATTERN, RigCreate, RigPage, RigPublic
 from workers.models import Rig, new_id
@@ -44,17 +45,14 @@ def create_rig(body: RigCreate, response: Response, session: SessionDep,
 
 
 @router.get("", response_model=RigPage, summary="List rigs, newest first")
-def list_rigs(session: SessionDep, _read: ReadAccessDep,
-              limit: Annotated[int, Query(ge=1, le=100)] = 20,
-              offset: Annotated[int, Query(ge=0, le=1_000_000)] = 0,
+def list_rigs(session: SessionDep, _read: ReadAccessDep, limit: PageLimit = 20,
+              offset: PageOffset = 0,
               name: Annotated[str | None, Query(min_length=1, max_length=100)] = None
               ) -> RigPage:
     query = select(Rig)
     if name is not None:
         query = query.where(Rig.name == name)
-    total = session.scalar(select(func.count()).select_from(query.subquery())) or 0
-    rows = session.scalars(query.order_by(Rig.created_at.desc(), Rig.id).limit(limit)
-                           .offset(offset))
+    rows, total = fetch_page(session, query, (Rig.created_at.desc(), Rig.id), limit, offset)
     return RigPage(items=[RigPublic.of(r) for r in rows], total=total, limit=limit,
                    offset=offset)
 
