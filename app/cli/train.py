@@ -1,4 +1,5 @@
-"""`volumesh train`: trains the regressor, the VAE and the U-Net + ControlNet; writes weights."""
+"""`volumesh train`: trains the regressor, the VAE and the U-Net + ControlNet, then fine-tunes
+the three end to end; writes weights."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ from app.cli import app
 
 VALIDATION_MESHES = ("spot", "fandisk")
 TEST_MESH_PREFIX = "stanford-bunny"
-STAGES = "regressor,vae,ldm"
+STAGES = "regressor,vae,ldm,finetune"
 MESHES = Path("../shared/data/meshes")
 
 
@@ -46,7 +47,7 @@ def train(
     cfg = tr.scaled(tr.CONFIGS[config], budget_scale) if budget_scale != 1.0 else tr.CONFIGS[config]
     wanted = [s.strip() for s in stages.split(",") if s.strip()]
     for s in wanted:
-        if s not in ("regressor", "vae", "ldm"):
+        if s not in STAGES.split(","):
             raise ValueError(f"--stages: unknown stage {s!r}")
     dev = tr.resolve_device(device)
     device = dev.type
@@ -100,19 +101,21 @@ def train(
         return bar, cb
 
     def finished(name: str) -> bytes | None:
-        path = out / f"{name}.safetensors"
+        path = out / _stage_file(name)
         return path.read_bytes() if resume and path.exists() else None
 
-    vae = None
+    vae, nets = None, None
     for stage in wanted:
         done = finished(stage)
-        if done is not None and stage != "ldm":
-            if stage == "vae":
-                from pipeline.enhance.inference import load_vae
-
-                vae = load_vae(done).to(dev)
-            continue
         if done is not None:
+            # A finished stage is kept; the VAE and LDM are loaded for the stages after them.
+            from pipeline.enhance.inference import load_ldm, load_vae
+
+            if stage == "vae":
+                vae = load_vae(done).to(dev)
+            if stage == "ldm" and vae is not None:
+                models = load_ldm(finished("vae") or b"", done)
+                vae, nets = models.vae.to(dev), (models.unet.to(dev), models.controlnet.to(dev))
             continue
         resume_state, save = checkpoint_io(stage)
         bar, cb = bar_for(stage)
@@ -125,18 +128,38 @@ def train(
             vae, log = tr.train_vae(train_pairs, cfg, seed, dev, resume_state, save, cb)
             data = weights_to_bytes(vae.state_dict(), asdict(cfg.vae))
             figures = validate_ldm(None, vae, val_pairs, cfg.validation_views, dev)
-        else:
+        elif stage == "ldm":
             if vae is None:
                 raise ValueError("--stages: ldm needs the vae stage (or its weights in --out)")
             unet, control, log = tr.train_ldm(
                 train_pairs, vae, cfg, seed, dev, resume_state, save, cb
             )
-            state = {f"unet.{k}": v for k, v in unet.state_dict().items()}
-            state.update({f"controlnet.{k}": v for k, v in control.state_dict().items()})
-            data = weights_to_bytes(state, asdict(cfg.unet))
-            figures = validate_ldm((unet, control), vae, val_pairs, cfg.validation_views, dev)
+            nets = (unet, control)
+            data = _ldm_bytes(unet, control, asdict(cfg.unet))
+            figures = validate_ldm(nets, vae, val_pairs, cfg.validation_views, dev)
+        else:
+            if vae is None or nets is None:
+                raise ValueError("--stages: finetune needs the vae and ldm stages (or their "
+                                 "weights in --out)")
+            from pipeline.enhance.pipelines.depth_ldm import LDMModels
+
+            models, log = tr.train_finetune(
+                train_pairs, LDMModels(vae, *nets), cfg, seed, dev, resume_state, save, cb
+            )
+            # The stage-wise weights stay beside the fine-tuned ones for comparison.
+            (out / "pretrained").mkdir(exist_ok=True)
+            for name in ("vae", "ldm"):
+                (out / name).with_suffix(".safetensors").replace(
+                    out / "pretrained" / f"{name}.safetensors"
+                )
+            vae, nets = models.vae, (models.unet, models.controlnet)
+            vae_bytes = weights_to_bytes(vae.state_dict(), asdict(cfg.vae))
+            (out / "vae.safetensors").write_bytes(vae_bytes)
+            (out / "ldm.safetensors").write_bytes(_ldm_bytes(*nets, asdict(cfg.unet)))
+            data = b"end-to-end fine-tuned: see vae.safetensors and ldm.safetensors"
+            figures = validate_ldm(nets, vae, val_pairs, cfg.validation_views, dev)
         bar.close()
-        (out / f"{stage}.safetensors").write_bytes(data)
+        (out / _stage_file(stage)).write_bytes(data)
         report[stage] = {
             "steps": log[-1]["step"] if log else 0,
             "train_seconds": log[-1]["seconds"] if log else 0.0,
@@ -149,6 +172,19 @@ def train(
         typer.echo(f"{stage}: {json.dumps(figures)}")
     report_path.write_text(json.dumps(report, indent=1))
     (out / "MODEL_CARD.md").write_text(model_card(report))
+
+
+def _stage_file(stage: str) -> str:
+    """The file whose presence marks a stage finished (fine-tuning rewrites vae and ldm)."""
+    return "finetune.done" if stage == "finetune" else f"{stage}.safetensors"
+
+
+def _ldm_bytes(unet, control, config: dict) -> bytes:
+    from pipeline.enhance.inference import weights_to_bytes
+
+    state = {f"unet.{k}": v for k, v in unet.state_dict().items()}
+    state.update({f"controlnet.{k}": v for k, v in control.state_dict().items()})
+    return weights_to_bytes(state, config)
 
 
 def model_card(report: dict) -> str:
@@ -173,7 +209,7 @@ def model_card(report: dict) -> str:
         "| stage | steps | training time (min) | final loss |",
         "| --- | --- | --- | --- |",
     ]
-    for stage in ("regressor", "vae", "ldm"):
+    for stage in ("regressor", "vae", "ldm", "finetune"):
         if stage in report:
             r = report[stage]
             loss = r["final_loss"]
@@ -189,7 +225,7 @@ def model_card(report: dict) -> str:
         "| stage | method | RMSE | edge RMSE |",
         "| --- | --- | --- | --- |",
     ]
-    for stage in ("regressor", "vae", "ldm"):
+    for stage in ("regressor", "vae", "ldm", "finetune"):
         for method, fig in report.get(stage, {}).get("validation", {}).items():
             if isinstance(fig, dict):
                 lines.append(

@@ -9,7 +9,7 @@ import torch
 
 from pipeline.enhance.models.controlnet import ControlNet
 from pipeline.enhance.models.unet import LatentUNet
-from pipeline.enhance.models.vae import DepthVAE, padded
+from pipeline.enhance.models.vae import LATENT_CHANNELS, DepthVAE, padded
 from pipeline.enhance.schedulers import ddim
 from pipeline.enhance.schedulers.ddpm import DDPMSchedule
 
@@ -24,6 +24,44 @@ class LDMModels:
     """Latent denoiser (v-prediction)."""
     controlnet: ControlNet
     """Conditioning branch on the degraded depth and colour edges."""
+
+
+def sample_depth(
+    models: LDMModels,
+    depth_n: torch.Tensor,
+    valid: torch.Tensor,
+    steps: int,
+    strength: float,
+    noise: torch.Tensor,
+    edges: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """(B, 1, H, W) enhanced depth: the whole sampler, differentiable, so end-to-end
+    fine-tuning trains exactly what inference runs.
+
+    `noise` is the (B, 4, H/8, W/8) start noise for the padded size (`latent_shape`).
+    """
+    schedule = DDPMSchedule()
+    d, v, (h, w) = padded(depth_n, valid)
+    e = None if edges is None else padded(edges, valid)[0]
+    scale = models.vae.latent_scale
+    z_start = models.vae.encode(d, v).mean * scale
+    hint = models.controlnet.hint_of(d, v, e)
+    ts = ddim.timesteps(schedule, steps, strength)
+    a0 = float(schedule.alphas_cumprod[ts[0]])
+    z = a0**0.5 * z_start + (1.0 - a0) ** 0.5 * noise
+    for i, t in enumerate(ts):
+        t_batch = torch.full((z.shape[0],), int(t), device=z.device, dtype=torch.long)
+        v_pred = models.unet(z, t_batch, models.controlnet(z, t_batch, hint))
+        t_prev = int(ts[i + 1]) if i + 1 < len(ts) else -1
+        z = ddim.step(z, v_pred, int(t), t_prev, schedule)
+    out = models.vae.decode(z / scale, d, v, e)
+    return out[..., :h, :w]
+
+
+def latent_shape(depth_n: torch.Tensor) -> tuple[int, int, int, int]:
+    """(B, 4, H/8, W/8) of the latent of (B, 1, H, W) depth after padding to multiples of 8."""
+    b, _, h, w = depth_n.shape
+    return (b, LATENT_CHANNELS, (h + 7) // 8, (w + 7) // 8)
 
 
 @torch.no_grad()
@@ -41,21 +79,6 @@ def enhance_depth_ldm(
     Deterministic for a seed: the start noise comes from a generator seeded with it and DDIM
     adds none (eta = 0). One step predicts the clean latent straight from the start.
     """
-    schedule = DDPMSchedule()
-    d, v, (h, w) = padded(depth_n, valid)
-    e = None if edges is None else padded(edges, valid)[0]
-    scale = models.vae.latent_scale
-    z_start = models.vae.encode(d, v).mean * scale
     gen = torch.Generator(device="cpu").manual_seed(seed)
-    noise = torch.randn(z_start.shape, generator=gen).to(z_start.device)
-    hint = models.controlnet.hint_of(d, v, e)
-    ts = ddim.timesteps(schedule, steps, strength)
-    a0 = float(schedule.alphas_cumprod[ts[0]])
-    z = a0**0.5 * z_start + (1.0 - a0) ** 0.5 * noise
-    for i, t in enumerate(ts):
-        t_batch = torch.full((z.shape[0],), int(t), device=z.device, dtype=torch.long)
-        v_pred = models.unet(z, t_batch, models.controlnet(z, t_batch, hint))
-        t_prev = int(ts[i + 1]) if i + 1 < len(ts) else -1
-        z = ddim.step(z, v_pred, int(t), t_prev, schedule)
-    out = models.vae.decode(z / scale, d, v, e)
-    return out[..., :h, :w]
+    noise = torch.randn(latent_shape(depth_n), generator=gen).to(depth_n.device)
+    return sample_depth(models, depth_n, valid, steps, strength, noise, edges)

@@ -9,11 +9,18 @@ import torch
 from pipeline.enhance import EnhanceConfig, enhance_mesh
 from pipeline.enhance.data import DataConfig, make_pairs, procedural_meshes
 from pipeline.enhance.inference import weights_from_bytes, weights_to_bytes
+from pipeline.enhance.pipelines.depth_ldm import (
+    LDMModels,
+    enhance_depth_ldm,
+    latent_shape,
+    sample_depth,
+)
 from pipeline.enhance.train import (
     CONFIGS,
     StageBudget,
     checkpoint_from_bytes,
     checkpoint_to_bytes,
+    train_finetune,
     train_ldm,
     train_regressor,
     train_vae,
@@ -26,7 +33,8 @@ TINY = CONFIGS["tiny"]
 @pytest.fixture(scope="module")
 def pairs():
     meshes = procedural_meshes(np.random.default_rng(0), 2)
-    return make_pairs(meshes, DataConfig(resolution=48, poses_per_mesh=1, views_per_pose=2), 0)
+    cfg = DataConfig(resolution=48, poses_per_mesh=1, views_per_pose=2, edge_fraction=(0.03, 0.04))
+    return make_pairs(meshes, cfg, 0)
 
 
 def test_pairs_are_degraded_copies(pairs):
@@ -60,6 +68,8 @@ def test_tiny_models_enhance_a_mesh_deterministically(pairs):
     reg, _ = train_regressor(pairs, TINY, 0, dev)
     vae, _ = train_vae(pairs, TINY, 0, dev)
     unet, control, _ = train_ldm(pairs, vae, TINY, 0, dev)
+    models, _ = train_finetune(pairs, LDMModels(vae, unet, control), TINY, 0, dev)
+    vae, unet, control = models.vae, models.unet, models.controlnet
     ldm_state = {f"unet.{k}": v for k, v in unet.state_dict().items()}
     ldm_state.update({f"controlnet.{k}": v for k, v in control.state_dict().items()})
     weights = {
@@ -83,6 +93,44 @@ def test_tiny_models_enhance_a_mesh_deterministically(pairs):
     # Moves are capped: nothing leaves the neighbourhood of the sphere.
     r = np.linalg.norm(a.vertices_m, axis=1)
     assert np.all(np.abs(r - np.linalg.norm(mesh.vertices_m, axis=1)) < 0.04)
+
+
+def test_finetuning_trains_every_part_through_the_sampler(pairs):
+    dev = torch.device("cpu")
+    vae, _ = train_vae(pairs, TINY, 0, dev)
+    unet, control, _ = train_ldm(pairs, vae, TINY, 0, dev)
+    before = {
+        name: {k: v.clone() for k, v in part.state_dict().items()}
+        for name, part in (("vae", vae), ("unet", unet), ("controlnet", control))
+    }
+    cfg = replace(TINY, finetune_budget=StageBudget(4, 1.0, 1e-3), finetune_steps=(2,))
+    models, log = train_finetune(pairs, LDMModels(vae, unet, control), cfg, 0, dev)
+    assert log and all(np.isfinite(e["loss"]) for e in log)
+    parts = (("vae", models.vae), ("unet", models.unet), ("controlnet", models.controlnet))
+    for name, part in parts:
+        after = part.state_dict()
+        floats = [k for k, v in before[name].items() if v.is_floating_point()]
+        changed = [k for k in floats if not torch.equal(before[name][k], after[k])]
+        assert changed, f"fine-tuning left the {name} untouched"
+    # What fine-tuning differentiates is what inference runs: same noise, same depth.
+    d = torch.from_numpy(pairs.degraded_n[:2, None])
+    v = torch.from_numpy(pairs.degraded_valid[:2, None])
+    gen = torch.Generator().manual_seed(5)
+    noise = torch.randn(latent_shape(d), generator=gen)
+    with torch.no_grad():
+        trained = sample_depth(models, d, v, 2, 0.5, noise)
+    assert torch.equal(trained, enhance_depth_ldm(models, d, v, 2, 0.5, 5))
+
+
+def test_training_meshes_are_remeshed_isotropically():
+    from pipeline.enhance.data import isotropic
+
+    mesh = procedural_meshes(np.random.default_rng(3), 5)[2][1]  # a stretched box
+    out = isotropic(mesh, 0.05)
+    edges = np.concatenate([out.faces[:, [0, 1]], out.faces[:, [1, 2]], out.faces[:, [2, 0]]])
+    lengths = np.linalg.norm(out.vertices_m[edges[:, 0]] - out.vertices_m[edges[:, 1]], axis=1)
+    assert abs(lengths.mean() / 0.05 - 1.0) < 0.25
+    assert lengths.std() / lengths.mean() < 0.35
 
 
 def test_bad_config_is_named():
