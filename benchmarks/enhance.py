@@ -39,13 +39,13 @@ SWEEPS = {
 }
 
 
-def bunny_protocol(meshes: Path, seed: int, edge_m: float = 0.005):
-    """(ground truth, noisy) bunny meshes of the protocol."""
+def bunny_protocol(meshes: Path, seed: int, edge_m: float = 0.005, name: str = "stanford-bunny"):
+    """(ground truth, noisy) meshes of the protocol (the bunny, or another mesh by `name`)."""
     import gpytoolbox
 
     from pipeline.io.mesh_io import read_mesh
 
-    m = read_mesh(meshes / "stanford-bunny.obj")
+    m = read_mesh(meshes / f"{name}.obj")
     v = m.vertices_m
     v = (v - 0.5 * (v.min(0) + v.max(0))) / np.ptp(v[:, 1])
     vr, fr = gpytoolbox.remesh_botsch(
@@ -148,9 +148,12 @@ def depth_level(weights: dict | None, views: int, seed: int, meshes: Path) -> di
 
 def perf_child(args) -> None:
     """Runs one LDM enhancement in this fresh process and prints seconds and peak RSS."""
-    truth, noisy = bunny_protocol(Path(args.meshes), args.seed)
+    truth, noisy = bunny_protocol(Path(args.meshes), args.seed, name=args.mesh)
     weights = _weights(args.weights)
-    cfg = EnhanceConfig(method="ldm", views=6, resolution=256, steps=args.steps, weights=weights)
+    cfg = EnhanceConfig(
+        method="ldm", views=args.views, resolution=args.resolution, steps=args.steps,
+        weights=weights,
+    )
     enhance_mesh(noisy, replace(cfg, resolution=32))  # warm-up: imports, first-call costs
     base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     t = time.perf_counter()
@@ -172,6 +175,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--meshes", default=str(ROOT.parent / "shared" / "data" / "meshes"))
     ap.add_argument("--weights", default=None, help="folder of .safetensors (default: shipped)")
+    ap.add_argument("--mesh", default="stanford-bunny", help="protocol mesh (default: the bunny)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--views", type=int, default=6)
     ap.add_argument("--resolution", type=int, default=256)
@@ -188,10 +192,10 @@ def main() -> None:
     torch.set_num_threads(max(1, torch.get_num_threads()))
     weights = _weights(args.weights)
     meshes = Path(args.meshes)
-    truth, noisy = bunny_protocol(meshes, args.seed)
+    truth, noisy = bunny_protocol(meshes, args.seed, name=args.mesh)
     report: dict = {
         "protocol": {
-            "mesh": "stanford-bunny, 1 m high, remeshed to 5 mm edges (gpytoolbox remesh_botsch)",
+            "mesh": f"{args.mesh}, 1 m high, remeshed to 5 mm edges (gpytoolbox remesh_botsch)",
             "vertices": truth.vertex_count,
             "noise": "uniform +-1 cm along vertex normals",
             "seed": args.seed,
@@ -220,7 +224,8 @@ def main() -> None:
             methods[label] = run_method(noisy, truth, cfg)
         except ValueError as exc:
             methods[label] = {"error": str(exc)}
-    child = [sys.executable, __file__, "--perf-child", "--meshes", args.meshes]
+    child = [sys.executable, __file__, "--perf-child", "--meshes", args.meshes, "--mesh", args.mesh]
+    child += ["--views", str(args.views), "--resolution", str(args.resolution)]
     child += ["--weights", args.weights] if args.weights else []
     proc = subprocess.run(child, capture_output=True, text=True)
     report["ldm_4_steps_fresh_process"] = (

@@ -75,8 +75,12 @@ class TrainConfig:
     """Sampling strength during fine-tuning (the enhance stage's default)."""
     checkpoint_every: int = 100
     """Steps between checkpoints."""
-    kl_weight: float = 1e-4
-    """Weight of the VAE's KL term."""
+    kl_weight: float = 1e-3
+    """Weight of the VAE's KL term, per pixel (KL summed over the latent, divided by the
+    image's pixels). Against the summed KL, as first written, the weight was some 16 000 times
+    what the mean per-pixel loss can carry: the posterior collapsed and the decoder, which
+    also sees the degraded depth, learnt to ignore the latent (clean and degraded latents
+    decoded alike)."""
     kl_warmup_fraction: float = 0.5
     """The KL weight ramps up from 0 over this fraction of the VAE's steps (against collapse)."""
     ldm_max_timestep: int = 600
@@ -339,7 +343,8 @@ def train_vae(
         recon = vae.decode(z, deg, deg_valid)
         kl_weight = config.kl_weight * min(1.0, calls[0] / warm_steps)
         calls[0] += 1
-        return masked_mse(recon, clean, mask) + kl_weight * posterior.kl().mean()
+        kl_per_pixel = posterior.kl().mean() / (clean.shape[-2] * clean.shape[-1])
+        return masked_mse(recon, clean, mask) + kl_weight * kl_per_pixel
 
     log = _fit(
         "vae",
