@@ -218,6 +218,9 @@ def main() -> None:
         ("ldm_1_step", replace(base, method="ldm", steps=1)),
         ("ldm_4_steps", replace(base, method="ldm", steps=4)),
         ("ldm_10_steps", replace(base, method="ldm", steps=10)),
+        # Inference-time variants of the same model: averaging more estimates per vertex.
+        ("ldm_4_steps_ensemble_4", replace(base, method="ldm", steps=4, ensemble=4)),
+        ("ldm_1_step_14_views", replace(base, method="ldm", steps=1, views=14)),
     ):
         try:
             run_method(noisy, truth, replace(cfg, resolution=32))  # warm-up (imports, loading)

@@ -31,6 +31,9 @@ def enhance_mesh_command(
         int, typer.Option("--iterations", help="Iterations of classical smoothers.")
     ] = 8,
     seed: Annotated[int, typer.Option("--seed")] = 0,
+    ensemble: Annotated[
+        int, typer.Option("--ensemble", help="Flipped copies of each view averaged: 1|2|4|8.")
+    ] = 1,
     device: Annotated[str, typer.Option("--device", help="auto | cpu | cuda")] = "auto",
     weights: Annotated[
         Path | None,
@@ -62,6 +65,7 @@ def enhance_mesh_command(
         steps=steps,
         strength=strength,
         seed=seed,
+        ensemble=ensemble,
         iterations=iterations,
         device=device,
         weights=loaded,

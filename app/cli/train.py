@@ -205,6 +205,15 @@ def model_card(report: dict) -> str:
         "sphere); degradations: vertex noise along normals, Azure-Kinect-like axial noise and "
         "flying pixels, holes, 4x down-then-up sampling",
         f"- crops {cfg['crop']}², batch {cfg['batch']}, AdamW, warm-up + cosine schedule",
+        "- source meshes are remeshed isotropically by the pipeline's remesh stage (edge "
+        f"{cfg['data']['edge_fraction'][0]}–{cfg['data']['edge_fraction'][1]} of the largest "
+        "extent) before the noise, as the enhance stage receives them",
+        "- stages: the regressor (the plain baseline); the VAE; U-Net + ControlNet "
+        "(v-prediction); then end-to-end fine-tuning of VAE, U-Net and ControlNet through the "
+        f"unrolled {'/'.join(map(str, cfg['finetune_steps']))}-step DDIM sampler at strength "
+        f"{cfg['finetune_strength']} on the decoded depth error",
+        "- the copies shipped in `pipeline/enhance/weights` are stored as float16 and load as "
+        "float32; mesh-level figures: README, Enhancement (`benchmarks/enhance.py`)",
         "",
         "| stage | steps | training time (min) | final loss |",
         "| --- | --- | --- | --- |",

@@ -31,6 +31,9 @@ class EnhanceConfig:
     """How far into the noise schedule sampling starts from the degraded latent (0, 1]."""
     seed: int = 0
     """Seed of the LDM's start noise."""
+    ensemble: int = 1
+    """Geometric self-ensemble: the network runs on this many flips/transposes of each view
+    (1, 2, 4 or 8) and the results, turned back, are averaged."""
     iterations: int = 8
     """Iterations of the classical smoothers."""
     update: UpdateConfig = field(default_factory=UpdateConfig)
@@ -57,6 +60,8 @@ def validate_config(config: EnhanceConfig) -> None:
         raise ValueError(f"steps must be >= 1, got {config.steps}")
     if not 0.0 < config.strength <= 1.0:
         raise ValueError(f"strength must be in (0, 1], got {config.strength}")
+    if config.ensemble not in (1, 2, 4, 8):
+        raise ValueError(f"ensemble must be 1, 2, 4 or 8, got {config.ensemble}")
     if config.iterations < 0:
         raise ValueError(f"iterations must be >= 0, got {config.iterations}")
     if config.remesh_iterations < 0:

@@ -97,8 +97,32 @@ def canny_edges(color_rgb: NDArray[np.uint8] | None, valid: NDArray[np.bool_]):
     return out
 
 
+def dihedral(x, k: int, inverse: bool = False):
+    """The k-th of the 8 flips/transposes of (..., H, W) square images (k = 0: identity)."""
+    if inverse:
+        if k & 4:
+            x = x.transpose(-1, -2)
+        if k & 2:
+            x = x.flip(-2)
+        if k & 1:
+            x = x.flip(-1)
+        return x
+    if k & 1:
+        x = x.flip(-1)
+    if k & 2:
+        x = x.flip(-2)
+    if k & 4:
+        x = x.transpose(-1, -2)
+    return x
+
+
 def run_network(renders: DepthRenders, config: EnhanceConfig) -> NDArray[np.float32]:
-    """(N, H, W) enhanced normalised depth from the chosen network, invalid pixels unchanged."""
+    """(N, H, W) enhanced normalised depth from the chosen network, invalid pixels unchanged.
+
+    With `config.ensemble` > 1 the views are also enhanced flipped and transposed, and the
+    results averaged: the networks' errors differ between those copies while the surface
+    does not (the geometric self-ensemble of super-resolution work).
+    """
     import torch
 
     from pipeline.enhance.pipelines.depth_ldm import enhance_depth_ldm
@@ -109,16 +133,24 @@ def run_network(renders: DepthRenders, config: EnhanceConfig) -> NDArray[np.floa
     v = torch.from_numpy(renders.valid[:, None]).to(device)
     edges_np = canny_edges(renders.color_rgb, renders.valid)
     e = None if edges_np is None else torch.from_numpy(edges_np[:, None]).to(device)
+    if config.method == "regressor":
+        model = load_regressor(_weights(config, "regressor")).to(device)
+
+        def net(d, v, e):
+            return model(d, v, e)
+    elif config.method == "ldm":
+        models = load_ldm(_weights(config, "vae"), _weights(config, "ldm"))
+        for part in (models.vae, models.unet, models.controlnet):
+            part.to(device)
+
+        def net(d, v, e):
+            return enhance_depth_ldm(models, d, v, config.steps, config.strength, config.seed, e)
+    else:
+        raise ValueError(f"method: {config.method!r} has no network")
+    total = torch.zeros_like(d)
     with torch.no_grad():
-        if config.method == "regressor":
-            model = load_regressor(_weights(config, "regressor")).to(device)
-            out = model(d, v, e)
-        elif config.method == "ldm":
-            models = load_ldm(_weights(config, "vae"), _weights(config, "ldm"))
-            for part in (models.vae, models.unet, models.controlnet):
-                part.to(device)
-            out = enhance_depth_ldm(models, d, v, config.steps, config.strength, config.seed, e)
-        else:
-            raise ValueError(f"method: {config.method!r} has no network")
-    enhanced = out[:, 0].cpu().numpy().astype(np.float32)
+        for k in range(config.ensemble):
+            t = [None if x is None else dihedral(x, k) for x in (d, v, e)]
+            total += dihedral(net(*t), k, inverse=True)
+    enhanced = (total / config.ensemble)[:, 0].cpu().numpy().astype(np.float32)
     return np.where(renders.valid, enhanced, renders.depth_n)

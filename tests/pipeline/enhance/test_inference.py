@@ -1,0 +1,50 @@
+"""Running networks on renders: the geometric self-ensemble."""
+
+from dataclasses import asdict, replace
+
+import numpy as np
+import pytest
+import torch
+
+from pipeline.enhance import EnhanceConfig
+from pipeline.enhance.inference import dihedral, run_network, weights_to_bytes
+from pipeline.enhance.models.regressor import RegressorConfig, ResidualUNet
+from pipeline.enhance.render import DepthRenders, make_views, render_depth, view_directions
+from tests.pipeline.enhance.conftest import sphere
+
+
+@pytest.mark.parametrize("k", range(8))
+def test_dihedral_copies_turn_back(k):
+    x = torch.arange(2 * 3 * 5 * 5.0).reshape(2, 3, 5, 5)
+    assert torch.equal(dihedral(dihedral(x, k), k, inverse=True), x)
+    assert len({dihedral(x, j).numpy().tobytes() for j in range(8)}) == 8
+
+
+@pytest.fixture(scope="module")
+def random_regressor() -> bytes:
+    torch.manual_seed(0)
+    cfg = RegressorConfig(channels=(8, 16))
+    model = ResidualUNet(cfg)
+    with torch.no_grad():  # a visible, asymmetric correction (the output conv starts small)
+        model.conv_out.weight.normal_(0.0, 0.5)
+    return weights_to_bytes(model.state_dict(), asdict(cfg))
+
+
+def test_full_ensemble_is_equivariant_to_flips(random_regressor):
+    mesh = sphere(0.5, 16)
+    renders = render_depth(mesh, make_views(mesh.vertices_m, view_directions(2), 32), False)
+    flipped = DepthRenders(renders.views, renders.depth_n[:, :, ::-1].copy(),
+                           renders.valid[:, :, ::-1].copy())
+    base = EnhanceConfig(method="regressor", weights={"regressor": random_regressor})
+    one = run_network(renders, base)
+    assert not np.allclose(run_network(flipped, base)[:, :, ::-1], one, atol=1e-6)
+    eight = run_network(renders, replace(base, ensemble=8))
+    assert np.allclose(run_network(flipped, replace(base, ensemble=8))[:, :, ::-1], eight,
+                       atol=1e-6)
+
+
+def test_ensemble_size_is_checked():
+    from pipeline.enhance.config import validate_config
+
+    with pytest.raises(ValueError, match="ensemble"):
+        validate_config(EnhanceConfig(ensemble=3))
