@@ -239,13 +239,18 @@ def _fit(
     modules: dict[str, nn.Module],
     trainable: list[nn.Parameter],
     step_loss: Callable[[], torch.Tensor],
+    rng: np.random.Generator,
     budget: StageBudget,
     config: TrainConfig,
     resume: Checkpoint | None,
     on_checkpoint: Callable[[Checkpoint], None] | None,
     progress: Callable[[float, str], None] | None,
 ) -> list[dict[str, float]]:
-    """The shared optimisation loop; returns the loss log (step, seconds, loss)."""
+    """The shared optimisation loop; returns the loss log (step, seconds, loss).
+
+    `rng` draws the batches; its state is checkpointed with torch's, so a resumed run sees
+    the crops an uninterrupted one would have.
+    """
     opt = torch.optim.AdamW(trainable, lr=budget.lr, weight_decay=1e-4)
     step, elapsed, log = 0, 0.0, []
     if resume is not None and resume.get("stage") == stage:
@@ -254,6 +259,7 @@ def _fit(
         opt.load_state_dict(resume["optimizer"])
         step, elapsed, log = resume["step"], resume["elapsed_s"], list(resume["log"])
         torch.set_rng_state(resume["torch_rng"])
+        rng.bit_generator.state = resume["numpy_rng"]
     start = time.monotonic() - elapsed
     running = 0.0
     while step < budget.steps and (time.monotonic() - start) < budget.minutes * 60:
@@ -281,6 +287,7 @@ def _fit(
                     "elapsed_s": time.monotonic() - start,
                     "log": log,
                     "torch_rng": torch.get_rng_state(),
+                    "numpy_rng": rng.bit_generator.state,
                 }
             )
     return log
@@ -309,6 +316,7 @@ def train_regressor(
         {"regressor": model},
         list(model.parameters()),
         step_loss,
+        sampler.rng,
         config.regressor_budget,
         config,
         resume,
@@ -351,6 +359,7 @@ def train_vae(
         {"vae": vae},
         list(vae.parameters()),
         step_loss,
+        sampler.rng,
         config.vae_budget,
         config,
         resume,
@@ -406,6 +415,7 @@ def train_ldm(
         {"unet": unet, "controlnet": control},
         list(unet.parameters()) + list(control.parameters()),
         step_loss,
+        sampler.rng,
         config.ldm_budget,
         config,
         resume,
@@ -431,21 +441,21 @@ def train_finetune(
     the mesh update reads rather than for a latent objective two steps removed from it."""
     torch.manual_seed(seed + 3)
     sampler = CropSampler(train, config.crop, seed + 3)
-    rng = np.random.default_rng(seed + 3)
     parts = {"vae": models.vae, "unet": models.unet, "controlnet": models.controlnet}
     for part in parts.values():
         part.train().requires_grad_(True)
 
     def step_loss() -> torch.Tensor:
         deg, deg_valid, clean, mask = sampler.batch(config.batch, device)
-        steps = int(rng.choice(config.finetune_steps))
+        steps = int(sampler.rng.choice(config.finetune_steps))
         noise = torch.randn(latent_shape(deg), device=device)
         pred = sample_depth(models, deg, deg_valid, steps, config.finetune_strength, noise)
         return masked_mse(pred, clean, mask)
 
     trainable = [p for part in parts.values() for p in part.parameters()]
     log = _fit(
-        "finetune", parts, trainable, step_loss, config.finetune_budget, config, resume,
+        "finetune", parts, trainable, step_loss, sampler.rng, config.finetune_budget, config,
+        resume,
         on_checkpoint, progress,
     )
     for part in parts.values():

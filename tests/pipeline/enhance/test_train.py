@@ -57,6 +57,21 @@ def test_regressor_trains_and_resumes_where_it_stopped(pairs):
     assert [c["step"] for c in more] == [4, 6]
 
 
+def test_a_resumed_run_ends_where_an_uninterrupted_one_does(pairs):
+    """Weights, optimiser, torch's and the crop sampler's random state all come back."""
+    cfg = replace(TINY, regressor_budget=StageBudget(4, 1.0), checkpoint_every=2)
+    saved: list[bytes] = []  # serialised at once, as the CLI does: state dicts are live views
+
+    def keep(ck):
+        saved.append(checkpoint_to_bytes(ck))
+
+    whole, _ = train_regressor(pairs, cfg, 0, torch.device("cpu"), on_checkpoint=keep)
+    stored = checkpoint_from_bytes(saved[0])
+    resumed, _ = train_regressor(pairs, cfg, 0, torch.device("cpu"), resume=stored)
+    for k, v in whole.state_dict().items():
+        assert torch.equal(v, resumed.state_dict()[k]), k
+
+
 def test_weights_round_trip_with_config():
     state = {"a": torch.arange(3.0)}
     got, cfg = weights_from_bytes(weights_to_bytes(state, {"channels": [8, 16]}))
