@@ -124,10 +124,13 @@ def depth_level(weights: dict | None, views: int, seed: int, meshes: Path) -> di
 
     d_t = torch.from_numpy(deg[:, None])
     v_t = torch.from_numpy(valid[:, None])
+    e_t = torch.from_numpy(pairs.edges[idx][:, None]).float()
     with torch.no_grad():
         try:
             reg = load_regressor(get("regressor"))
-            pred = torch.cat([reg(d_t[i : i + 6], v_t[i : i + 6]) for i in range(0, len(idx), 6)])
+            pred = torch.cat(
+                [reg(d_t[i : i + 6], v_t[i : i + 6], e_t[i : i + 6]) for i in range(0, len(idx), 6)]
+            )
             out["regressor"] = depth_scores(pred[:, 0].numpy(), pairs, idx)
         except ValueError as exc:
             out["regressor"] = {"error": str(exc)}
@@ -136,7 +139,9 @@ def depth_level(weights: dict | None, views: int, seed: int, meshes: Path) -> di
             for steps in (1, 4, 10):
                 pred = torch.cat(
                     [
-                        enhance_depth_ldm(models, d_t[i : i + 6], v_t[i : i + 6], steps, 0.5, 0)
+                        enhance_depth_ldm(
+                            models, d_t[i : i + 6], v_t[i : i + 6], steps, 0.5, 0, e_t[i : i + 6]
+                        )
                         for i in range(0, len(idx), 6)
                     ]
                 )

@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.enhance.render import DepthRenders
+from pipeline.enhance.render import DepthRenders, canny_edges
 
 if TYPE_CHECKING:
     import torch
@@ -82,19 +82,6 @@ def _weights(config: EnhanceConfig, name: str) -> bytes:
     if config.weights is not None and name in config.weights:
         return config.weights[name]
     return shipped_bytes(name)
-
-
-def canny_edges(color_rgb: NDArray[np.uint8] | None, valid: NDArray[np.bool_]):
-    """(N, H, W) float32 Canny edges (0/1) of colour renders, or None without colour."""
-    if color_rgb is None:
-        return None
-    import cv2
-
-    out = np.zeros(valid.shape, np.float32)
-    for k in range(len(color_rgb)):
-        gray = cv2.cvtColor(color_rgb[k], cv2.COLOR_RGB2GRAY)
-        out[k] = (cv2.Canny(gray, 50, 150) > 0) & valid[k]
-    return out
 
 
 def dihedral(x, k: int, inverse: bool = False):

@@ -161,3 +161,19 @@ def project(points_m: NDArray[np.float64], views: ViewSet) -> tuple[NDArray, NDA
     rows = (y + views.half_extent_m) * scale - 0.5
     depth_n = (z + views.half_extent_m) / views.depth_range_m
     return np.stack([cols, rows], axis=-1), depth_n
+
+
+def canny_edges(
+    color_rgb: NDArray[np.uint8] | None, valid: NDArray[np.bool_]
+) -> NDArray[np.float32] | None:
+    """(N, H, W) float32 Canny edges (0/1) of (N, H, W, 3) colour renders on the surface, or
+    None without colour: the networks' colour-edge input."""
+    if color_rgb is None:
+        return None
+    import cv2
+
+    out = np.zeros(valid.shape, np.float32)
+    for k in range(len(color_rgb)):
+        gray = cv2.cvtColor(color_rgb[k], cv2.COLOR_RGB2GRAY)
+        out[k] = (cv2.Canny(gray, 50, 150) > 0) & valid[k]
+    return out

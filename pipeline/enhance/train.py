@@ -112,6 +112,7 @@ CONFIGS: dict[str, TrainConfig] = {
     # validation the whole run stays within an hour.
     "small": TrainConfig(
         name="small",
+        data=DataConfig(poses_per_mesh=12),
         crop=128,
         batch=8,
         regressor_budget=StageBudget(6000, 11.0),
@@ -161,6 +162,7 @@ class CropSampler:
         self.deg = torch.from_numpy(pairs.degraded_n)
         self.deg_valid = torch.from_numpy(pairs.degraded_valid)
         self.clean = torch.from_numpy(pairs.clean_n)
+        self.edges = torch.from_numpy(pairs.edges)
         # Self-occlusion changes make a few huge residuals that no enhancer should chase.
         mask = pairs.loss_mask & (np.abs(pairs.clean_n - pairs.degraded_n) < 0.05)
         self.mask = torch.from_numpy(mask)
@@ -168,9 +170,11 @@ class CropSampler:
         self.rng = np.random.default_rng(seed)
 
     def batch(self, size: int, device: torch.device) -> tuple[torch.Tensor, ...]:
+        """(degraded depth, its validity, clean depth, loss mask, colour edges), each
+        (size, 1, crop, crop); the edges as float 0/1."""
         n, h, w = self.deg.shape
         c = self.crop
-        out: list[list[torch.Tensor]] = [[], [], [], []]
+        out: list[list[torch.Tensor]] = [[], [], [], [], []]
         while len(out[0]) < size:
             i = int(self.rng.integers(n))
             y, x = int(self.rng.integers(h - c + 1)), int(self.rng.integers(w - c + 1))
@@ -179,7 +183,7 @@ class CropSampler:
                 continue
             parts = [
                 t[i, y : y + c, x : x + c]
-                for t in (self.deg, self.deg_valid, self.clean, self.mask)
+                for t in (self.deg, self.deg_valid, self.clean, self.mask, self.edges)
             ]
             if self.rng.random() < 0.5:
                 parts = [p.flip(-1) for p in parts]
@@ -189,7 +193,8 @@ class CropSampler:
                 parts = [p.transpose(-1, -2) for p in parts]
             for lst, p in zip(out, parts, strict=True):
                 lst.append(p)
-        return tuple(torch.stack(lst)[:, None].to(device) for lst in out)
+        deg, valid, clean, mask, edges = (torch.stack(lst)[:, None].to(device) for lst in out)
+        return deg, valid, clean, mask, edges.float()
 
 
 def masked_mse(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -308,8 +313,8 @@ def train_regressor(
     sampler = CropSampler(train, config.crop, seed)
 
     def step_loss() -> torch.Tensor:
-        deg, deg_valid, clean, mask = sampler.batch(config.batch, device)
-        return masked_mse(model(deg, deg_valid), clean, mask)
+        deg, deg_valid, clean, mask, edges = sampler.batch(config.batch, device)
+        return masked_mse(model(deg, deg_valid, edges), clean, mask)
 
     log = _fit(
         "regressor",
@@ -345,10 +350,10 @@ def train_vae(
     warm_steps = max(1.0, config.kl_warmup_fraction * config.vae_budget.steps)
 
     def step_loss() -> torch.Tensor:
-        deg, deg_valid, clean, mask = sampler.batch(config.batch, device)
+        deg, deg_valid, clean, mask, edges = sampler.batch(config.batch, device)
         posterior = vae.encode(clean, deg_valid)
         z = posterior.sample()
-        recon = vae.decode(z, deg, deg_valid)
+        recon = vae.decode(z, deg, deg_valid, edges)
         kl_weight = config.kl_weight * min(1.0, calls[0] / warm_steps)
         calls[0] += 1
         kl_per_pixel = posterior.kl().mean() / (clean.shape[-2] * clean.shape[-1])
@@ -368,7 +373,7 @@ def train_vae(
     )
     vae.eval()
     with torch.no_grad():
-        deg, deg_valid, clean, _ = sampler.batch(max(config.batch, 8), device)
+        deg, deg_valid, clean, _, _ = sampler.batch(max(config.batch, 8), device)
         z = vae.encode(clean, deg_valid).mean
         vae.latent_scale.fill_(1.0 / float(z.std().clamp_min(1e-6)))
     return vae, log
@@ -396,7 +401,7 @@ def train_ldm(
     vae.eval().requires_grad_(False)
 
     def step_loss() -> torch.Tensor:
-        deg, deg_valid, clean, _ = sampler.batch(config.batch, device)
+        deg, deg_valid, clean, _, edges = sampler.batch(config.batch, device)
         with torch.no_grad():
             z0 = vae.encode(clean, deg_valid).mean * vae.latent_scale
         t_max = min(config.ldm_max_timestep, schedule.num_train_steps)
@@ -406,7 +411,7 @@ def train_ldm(
         s = (1 - alphas[t]).sqrt()[:, None, None, None]
         zt = a * z0 + s * noise
         v_target = a * noise - s * z0
-        residuals = control(zt, t, control.hint_of(deg, deg_valid))
+        residuals = control(zt, t, control.hint_of(deg, deg_valid, edges))
         v_pred = unet(zt, t, residuals)
         return ((v_pred - v_target) ** 2).mean()
 
@@ -446,10 +451,10 @@ def train_finetune(
         part.train().requires_grad_(True)
 
     def step_loss() -> torch.Tensor:
-        deg, deg_valid, clean, mask = sampler.batch(config.batch, device)
+        deg, deg_valid, clean, mask, edges = sampler.batch(config.batch, device)
         steps = int(sampler.rng.choice(config.finetune_steps))
         noise = torch.randn(latent_shape(deg), device=device)
-        pred = sample_depth(models, deg, deg_valid, steps, config.finetune_strength, noise)
+        pred = sample_depth(models, deg, deg_valid, steps, config.finetune_strength, noise, edges)
         return masked_mse(pred, clean, mask)
 
     trainable = [p for part in parts.values() for p in part.parameters()]

@@ -41,7 +41,7 @@ def depth_scores(pred: NDArray, pairs: DepthPairs, idx: NDArray[np.int64]) -> di
 
 
 def _batched(
-    fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
+    fn: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor],
     pairs: DepthPairs,
     idx: NDArray[np.int64],
     device: torch.device,
@@ -53,7 +53,8 @@ def _batched(
             sel = idx[s : s + batch]
             d = torch.from_numpy(pairs.degraded_n[sel][:, None]).to(device)
             v = torch.from_numpy(pairs.degraded_valid[sel][:, None]).to(device)
-            outs.append(fn(d, v)[:, 0].cpu().numpy())
+            e = torch.from_numpy(pairs.edges[sel][:, None]).float().to(device)
+            outs.append(fn(d, v, e)[:, 0].cpu().numpy())
     return np.concatenate(outs)
 
 
@@ -80,13 +81,14 @@ def validate_ldm(
     out: dict = {"views": len(idx), "raw": depth_scores(pairs.degraded_n[idx], pairs, idx)}
 
     def decode_of(source: NDArray[np.float32]):
-        def fn(d: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+        def fn(d: torch.Tensor, v: torch.Tensor, e: torch.Tensor) -> torch.Tensor:
             # The latent of `source` (clean or degraded), decoded with the degraded guide.
             sel = _current.pop(0)
             x = torch.from_numpy(source[sel][:, None]).to(device)
             xp, vp, (h, w) = padded(x, v)
             dp, _, _ = padded(d, v)
-            return vae.decode(vae.encode(xp, vp).mean, dp, vp)[..., :h, :w]
+            ep, _, _ = padded(e, v)
+            return vae.decode(vae.encode(xp, vp).mean, dp, vp, ep)[..., :h, :w]
 
         return fn
 
@@ -100,9 +102,10 @@ def validate_ldm(
         for steps, strength in runs:
 
             def sample(
-                d: torch.Tensor, v: torch.Tensor, n: int = steps, s: float = strength
+                d: torch.Tensor, v: torch.Tensor, e: torch.Tensor, n: int = steps,
+                s: float = strength,
             ) -> torch.Tensor:
-                return enhance_depth_ldm(models, d, v, n, s, 0)
+                return enhance_depth_ldm(models, d, v, n, s, 0, e)
 
             pred = _batched(sample, pairs, idx, device)
             out[f"ldm_{steps}_steps_strength_{strength}"] = depth_scores(pred, pairs, idx)

@@ -44,6 +44,19 @@ def test_pairs_are_degraded_copies(pairs):
     assert pairs.source == ("procedural-0",) * 2 + ("procedural-1",) * 2
 
 
+def test_light_noise_poses_degrade_less():
+    meshes = procedural_meshes(np.random.default_rng(1), 1)
+    base = DataConfig(resolution=48, poses_per_mesh=2, views_per_pose=2, edge_fraction=(0.03, 0.04),
+                      kinect_probability=0.0, hole_probability=0.0, downup_probability=0.0)
+
+    def median_change(light: float) -> float:
+        p = make_pairs(meshes, replace(base, light_noise_probability=light), 0)
+        return float(np.median(np.abs(p.degraded_n - p.clean_n)[p.loss_mask]))
+
+    heavy, light = median_change(0.0), median_change(1.0)
+    assert 0 < light < 0.5 * heavy
+
+
 def test_regressor_trains_and_resumes_where_it_stopped(pairs):
     saved = []
     cfg = replace(TINY, regressor_budget=StageBudget(4, 1.0), checkpoint_every=2)
@@ -176,3 +189,14 @@ def test_vae_weights_reload_with_their_config():
     again = load_vae(weights_to_bytes(vae.state_dict(), asdict(cfg)))
     assert float(again.latent_scale) == 2.5
     assert torch.equal(again.to_moments.weight, vae.to_moments.weight)
+
+
+def test_coloured_poses_give_edges_and_uncoloured_none():
+    meshes = procedural_meshes(np.random.default_rng(2), 1)
+    base = DataConfig(resolution=64, poses_per_mesh=2, views_per_pose=2, edge_fraction=(0.03, 0.04))
+    coloured = make_pairs(meshes, replace(base, color_probability=1.0), 0)
+    plain = make_pairs(meshes, replace(base, color_probability=0.0), 0)
+    assert not plain.edges.any()
+    assert coloured.edges.shape == coloured.degraded_n.shape
+    assert all(coloured.edges[k].any() for k in range(len(coloured.source)))
+    assert not (coloured.edges & ~coloured.degraded_valid).any()  # only on the surface
