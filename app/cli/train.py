@@ -202,8 +202,13 @@ def model_card(report: dict) -> str:
         f"- pairs: {report['data']['train_pairs']} training, "
         f"{report['data']['validation_pairs']} validation, "
         f"{cfg['data']['resolution']}² normalised depth (per view, relative to the bounding "
-        "sphere); degradations: vertex noise along normals, Azure-Kinect-like axial noise and "
-        "flying pixels, holes, 4x down-then-up sampling",
+        "sphere); degradations: vertex noise along normals (amplitude "
+        f"{cfg['data']['noise_fraction'][0]}–{cfg['data']['noise_fraction'][1]} of the largest "
+        "extent, or below the lower bound for a share "
+        f"{cfg['data'].get('light_noise_probability', 0)} of the poses), Azure-Kinect-like "
+        "axial noise and flying pixels, holes, 4x "
+        "down-then-up sampling; synthetic colour (albedo patches shaded by the clean normals) on "
+        f"a share {cfg['data'].get('color_probability', 0)} of the poses, its Canny edges an input",
         f"- crops {cfg['crop']}², batch {cfg['batch']}, AdamW, warm-up + cosine schedule",
         "- source meshes are remeshed isotropically by the pipeline's remesh stage (edge "
         f"{cfg['data']['edge_fraction'][0]}–{cfg['data']['edge_fraction'][1]} of the largest "
