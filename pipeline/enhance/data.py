@@ -248,6 +248,9 @@ def make_pairs(
             views = make_views(noisy.vertices_m, forwards, config.resolution)
             r_noisy = render_depth(noisy, views, with_color=True)
             r_clean = render_depth(fine, views, with_color=False)
+            # Every degradation below only shrinks the valid mask, so the render's edges
+            # masked by a view's final mask are that view's edges.
+            pose_edges = canny_edges(r_noisy.color_rgb, r_noisy.valid)
             for k in range(views.count):
                 d, v = r_noisy.depth_n[k].copy(), r_noisy.valid[k].copy()
                 if rng.random() < config.kinect_probability:
@@ -257,9 +260,7 @@ def make_pairs(
                 if rng.random() < config.hole_probability:
                     v = _holes(v, rng)
                 d = np.where(v, d, 1.0).astype(np.float32)
-                e = canny_edges(None if r_noisy.color_rgb is None else r_noisy.color_rgb[k : k + 1],
-                                v[None])
-                edges.append(np.zeros_like(v) if e is None else e[0] > 0)
+                edges.append(np.zeros_like(v) if pose_edges is None else v & (pose_edges[k] > 0))
                 deg.append(d)
                 deg_valid.append(v)
                 clean.append(r_clean.depth_n[k])
