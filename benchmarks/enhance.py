@@ -95,6 +95,7 @@ def depth_level(weights: dict | None, views: int, seed: int, meshes: Path) -> di
 
     from pipeline.enhance.data import DataConfig, make_pairs, procedural_meshes
     from pipeline.enhance.inference import load_ldm, load_regressor
+    from pipeline.enhance.models.common import side_inputs
     from pipeline.enhance.pipelines.depth_ldm import enhance_depth_ldm
     from pipeline.enhance.validate import depth_scores
     from pipeline.enhance.weights import shipped_bytes
@@ -105,18 +106,22 @@ def depth_level(weights: dict | None, views: int, seed: int, meshes: Path) -> di
     pairs = make_pairs(val, DataConfig(poses_per_mesh=2), seed + 1000)
     idx = np.unique(np.linspace(0, len(pairs.source) - 1, views).round().astype(np.int64))
     deg, valid = pairs.degraded_n[idx], pairs.degraded_valid[idx]
+    # The base stands in where the noisy render has no surface (their silhouettes differ).
+    noisy = np.where(pairs.noisy_n[idx] < 1.0, pairs.noisy_n[idx], deg)
     out = {"views": len(idx), "sources": sorted(set(pairs.source)), "units": "1e-3 of depth range"}
-    out["raw"] = depth_scores(deg, pairs, idx)
-    bil = np.stack([cv2.bilateralFilter(d, 5, 0.01, 2.0) for d in deg])
-    out["bilateral_filter"] = depth_scores(np.where(valid, bil, deg), pairs, idx)
+    # The image filters get the noisy render, as they would without the networks' pre-smoothing.
+    out["noisy"] = depth_scores(noisy, pairs, idx)
+    out["presmoothed"] = depth_scores(deg, pairs, idx)
+    bil = np.stack([cv2.bilateralFilter(d, 5, 0.01, 2.0) for d in noisy])
+    out["bilateral_filter"] = depth_scores(np.where(valid, bil, noisy), pairs, idx)
     jbu = []
-    for d in deg:
+    for d in noisy:
         h, w = d.shape
         low = cv2.resize(d, (w // 4, h // 4), interpolation=cv2.INTER_AREA)
         up = cv2.resize(low, (w, h), interpolation=cv2.INTER_LINEAR)
         jbu.append(cv2.ximgproc.jointBilateralFilter(d, up, 7, 0.01, 3.0))
     out["joint_bilateral_upsampling"] = depth_scores(
-        np.where(valid, np.stack(jbu), deg), pairs, idx
+        np.where(valid, np.stack(jbu), noisy), pairs, idx
     )
 
     def get(name: str) -> bytes:
@@ -124,12 +129,17 @@ def depth_level(weights: dict | None, views: int, seed: int, meshes: Path) -> di
 
     d_t = torch.from_numpy(deg[:, None])
     v_t = torch.from_numpy(valid[:, None])
-    e_t = torch.from_numpy(pairs.edges[idx][:, None]).float()
+    side_t = side_inputs(
+        torch.from_numpy(pairs.edges[idx][:, None]), torch.from_numpy(noisy[:, None]), d_t, v_t
+    )
     with torch.no_grad():
         try:
             reg = load_regressor(get("regressor"))
             pred = torch.cat(
-                [reg(d_t[i : i + 6], v_t[i : i + 6], e_t[i : i + 6]) for i in range(0, len(idx), 6)]
+                [
+                    reg(d_t[i : i + 6], v_t[i : i + 6], side_t[i : i + 6])
+                    for i in range(0, len(idx), 6)
+                ]
             )
             out["regressor"] = depth_scores(pred[:, 0].numpy(), pairs, idx)
         except ValueError as exc:
@@ -140,7 +150,7 @@ def depth_level(weights: dict | None, views: int, seed: int, meshes: Path) -> di
                 pred = torch.cat(
                     [
                         enhance_depth_ldm(
-                            models, d_t[i : i + 6], v_t[i : i + 6], steps, 0.5, 0, e_t[i : i + 6]
+                            models, d_t[i : i + 6], v_t[i : i + 6], steps, 0.5, 0, side_t[i : i + 6]
                         )
                         for i in range(0, len(idx), 6)
                     ]

@@ -30,6 +30,13 @@ def enhance_mesh_command(
     iterations: Annotated[
         int, typer.Option("--iterations", help="Iterations of classical smoothers.")
     ] = 8,
+    presmooth: Annotated[
+        int,
+        typer.Option(
+            "--presmooth",
+            help="Laplacian iterations before the networks (as the weights were trained).",
+        ),
+    ] = 10,
     seed: Annotated[int, typer.Option("--seed")] = 0,
     ensemble: Annotated[
         int, typer.Option("--ensemble", help="Flipped copies of each view averaged: 1|2|4|8.")
@@ -67,6 +74,7 @@ def enhance_mesh_command(
         seed=seed,
         ensemble=ensemble,
         iterations=iterations,
+        presmooth_iterations=presmooth,
         device=device,
         weights=loaded,
     )

@@ -213,6 +213,9 @@ def model_card(report: dict) -> str:
         "- source meshes are remeshed isotropically by the pipeline's remesh stage (edge "
         f"{cfg['data']['edge_fraction'][0]}–{cfg['data']['edge_fraction'][1]} of the largest "
         "extent) before the noise, as the enhance stage receives them",
+        "- the networks correct the render of the noisy mesh after "
+        f"{cfg['data'].get('presmooth_iterations', 0)} Laplacian smoothing iterations (λ 0.5), "
+        "reading the noisy mesh's own render beside it (its offset from the smoothed one)",
         "- stages: the regressor (the plain baseline); the VAE; U-Net + ControlNet "
         "(v-prediction); then end-to-end fine-tuning of VAE, U-Net and ControlNet through the "
         f"unrolled {'/'.join(map(str, cfg['finetune_steps']))}-step DDIM sampler at strength "

@@ -36,6 +36,10 @@ class EnhanceConfig:
     (1, 2, 4 or 8) and the results, turned back, are averaged."""
     iterations: int = 8
     """Iterations of the classical smoothers."""
+    presmooth_iterations: int = 10
+    """Laplacian smoothing iterations before the networks (ldm, regressor): they correct the
+    smoothed mesh's renders, reading the mesh's own as a side input, and the smoothed mesh's
+    vertices move. Must match the weights' training (`DataConfig.presmooth_iterations`)."""
     update: UpdateConfig = field(default_factory=UpdateConfig)
     """How vertices follow the enhanced depth."""
     remesh_iterations: int = 1
@@ -64,6 +68,10 @@ def validate_config(config: EnhanceConfig) -> None:
         raise ValueError(f"ensemble must be 1, 2, 4 or 8, got {config.ensemble}")
     if config.iterations < 0:
         raise ValueError(f"iterations must be >= 0, got {config.iterations}")
+    if config.presmooth_iterations < 0:
+        raise ValueError(
+            f"presmooth_iterations must be >= 0, got {config.presmooth_iterations}"
+        )
     if config.remesh_iterations < 0:
         raise ValueError(f"remesh_iterations must be >= 0, got {config.remesh_iterations}")
 
@@ -88,12 +96,16 @@ def enhance_mesh(
         return baselines.bilateral_denoise(mesh, config.iterations)
     views = make_views(mesh.vertices_m, view_directions(config.views), config.resolution)
     renders = render_depth(mesh, views, with_color=True)
+    base, base_renders = mesh, renders
+    if config.method != "views" and config.presmooth_iterations > 0:
+        base = baselines.laplacian_smooth(mesh, config.presmooth_iterations)
+        base_renders = render_depth(base, views, with_color=False)
     if progress is not None:
         progress(0.2)
-    enhanced = enhance_renders(renders, config)
+    enhanced = enhance_renders(base_renders, renders, config)
     if progress is not None:
         progress(0.8)
-    result, _ = update_vertices(mesh, renders, enhanced, config.update)
+    result, _ = update_vertices(base, base_renders, enhanced, config.update)
     if config.remesh_iterations > 0:
         result = light_remesh(result, config.remesh_iterations)
     if progress is not None:
@@ -114,10 +126,13 @@ def light_remesh(mesh: TriangleMesh, iterations: int) -> TriangleMesh:
     return out
 
 
-def enhance_renders(renders: DepthRenders, config: EnhanceConfig) -> NDArray[np.float32]:
-    """(N, H, W) enhanced normalised depth of all views, in one batch."""
+def enhance_renders(
+    base: DepthRenders, noisy: DepthRenders, config: EnhanceConfig
+) -> NDArray[np.float32]:
+    """(N, H, W) enhanced normalised depth of all views, in one batch: `base` corrected (the
+    pre-smoothed mesh's renders), `noisy` (the mesh's own) read beside it."""
     if config.method == "views":
-        return renders.depth_n
+        return base.depth_n
     from pipeline.enhance.inference import run_network
 
-    return run_network(renders, config)
+    return run_network(base, noisy, config)

@@ -15,6 +15,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
+from pipeline.enhance.baselines import laplacian_smooth
 from pipeline.enhance.render import canny_edges, make_views, render_depth
 from pipeline.mesh import TriangleMesh, vertex_normals
 
@@ -44,6 +45,14 @@ class DataConfig:
     """Chance a view gets holes punched in it."""
     downup_probability: float = 0.2
     """Chance a view is 4x downsampled and bilinearly upsampled."""
+    presmooth_iterations: int = 10
+    """Laplacian smoothing iterations of the noisy mesh whose render is the networks' base
+    depth (the noisy render rides along as a side input); 0: the noisy render is the base.
+    The enhance stage must smooth alike (`EnhanceConfig.presmooth_iterations`). Laplacian
+    smoothing at its best count leaves about 1.2 mm on the bunny, while networks that had to
+    average the noise away from a single view themselves left 1.4-1.5 mm, most of it
+    low-frequency: the mesh's own neighbourhoods average noise better than one view shows it,
+    and the network is left the part smoothing gets wrong (shrinkage, lost features)."""
     color_probability: float = 0.5
     """Chance a pose's mesh gets synthetic colour (`synthetic_colors`), whose Canny edges the
     networks then read as at inference on a coloured mesh; the other poses have none (edges
@@ -55,9 +64,12 @@ class DepthPairs:
     """Aligned degraded/clean normalised depth images."""
 
     degraded_n: NDArray[np.float32]
-    """(N, H, W) degraded normalised depth (1 where invalid)."""
+    """(N, H, W) the base depth the networks correct: the degraded render of the pre-smoothed
+    noisy mesh, normalised (1 where invalid)."""
     degraded_valid: NDArray[np.bool_]
-    """(N, H, W) validity of the degraded depth."""
+    """(N, H, W) validity of the base depth."""
+    noisy_n: NDArray[np.float32]
+    """(N, H, W) the degraded render of the noisy mesh itself (1 where invalid)."""
     clean_n: NDArray[np.float32]
     """(N, H, W) clean normalised depth of the same view."""
     loss_mask: NDArray[np.bool_]
@@ -229,7 +241,7 @@ def make_pairs(
     if not meshes:
         raise ValueError("meshes: need at least one source mesh")
     rng = np.random.default_rng(seed)
-    deg, deg_valid, clean, mask, edges, names = [], [], [], [], [], []
+    deg, deg_valid, noisy_out, clean, mask, edges, names = [], [], [], [], [], [], []
     total = len(meshes) * config.poses_per_mesh
     done = 0
     for name, mesh in meshes:
@@ -247,29 +259,38 @@ def make_pairs(
             forwards = rng.normal(size=(config.views_per_pose, 3))
             views = make_views(noisy.vertices_m, forwards, config.resolution)
             r_noisy = render_depth(noisy, views, with_color=True)
+            r_base = render_depth(
+                laplacian_smooth(noisy, config.presmooth_iterations), views, with_color=False
+            )
             r_clean = render_depth(fine, views, with_color=False)
             # Every degradation below only shrinks the valid mask, so the render's edges
             # masked by a view's final mask are that view's edges.
             pose_edges = canny_edges(r_noisy.color_rgb, r_noisy.valid)
             for k in range(views.count):
                 d, v = r_noisy.depth_n[k].copy(), r_noisy.valid[k].copy()
+                b, bv = r_base.depth_n[k].copy(), r_base.valid[k].copy()
+                # Sensor noise marks the noisy surface; the smoothed one averages it away.
                 if rng.random() < config.kinect_probability:
                     d = _kinect_noise(d, v, views.depth_range_m, rng)
                 if rng.random() < config.downup_probability:
                     d, v = _down_up(d, v)
+                    b, bv = _down_up(b, bv)
                 if rng.random() < config.hole_probability:
-                    v = _holes(v, rng)
+                    holes = _holes(np.ones_like(v), rng)
+                    v, bv = v & holes, bv & holes
                 d = np.where(v, d, 1.0).astype(np.float32)
-                edges.append(np.zeros_like(v) if pose_edges is None else v & (pose_edges[k] > 0))
-                deg.append(d)
-                deg_valid.append(v)
+                b = np.where(bv, b, 1.0).astype(np.float32)
+                edges.append(np.zeros_like(bv) if pose_edges is None else bv & (pose_edges[k] > 0))
+                deg.append(b)
+                deg_valid.append(bv)
+                noisy_out.append(d)
                 clean.append(r_clean.depth_n[k])
-                mask.append(v & r_clean.valid[k])
+                mask.append(bv & r_clean.valid[k])
                 names.append(name)
             done += 1
             if progress is not None:
                 progress(done / total)
     return DepthPairs(
-        np.stack(deg), np.stack(deg_valid), np.stack(clean), np.stack(mask), np.stack(edges),
-        tuple(names),
+        np.stack(deg), np.stack(deg_valid), np.stack(noisy_out), np.stack(clean), np.stack(mask),
+        np.stack(edges), tuple(names),
     )

@@ -103,8 +103,13 @@ def dihedral(x, k: int, inverse: bool = False):
     return x
 
 
-def run_network(renders: DepthRenders, config: EnhanceConfig) -> NDArray[np.float32]:
+def run_network(
+    base: DepthRenders, noisy: DepthRenders, config: EnhanceConfig
+) -> NDArray[np.float32]:
     """(N, H, W) enhanced normalised depth from the chosen network, invalid pixels unchanged.
+
+    `base` are the renders the network corrects (of the pre-smoothed mesh), `noisy` those of
+    the mesh as it came, from the same views (their colour gives the edge input).
 
     With `config.ensemble` > 1 the views are also enhanced flipped and transposed, and the
     results averaged: the networks' errors differ between those copies while the surface
@@ -112,14 +117,16 @@ def run_network(renders: DepthRenders, config: EnhanceConfig) -> NDArray[np.floa
     """
     import torch
 
+    from pipeline.enhance.models.common import side_inputs
     from pipeline.enhance.pipelines.depth_ldm import enhance_depth_ldm
     from pipeline.enhance.train import resolve_device
 
     device = resolve_device(config.device)
-    d = torch.from_numpy(renders.depth_n[:, None]).to(device)
-    v = torch.from_numpy(renders.valid[:, None]).to(device)
-    edges_np = canny_edges(renders.color_rgb, renders.valid)
+    d = torch.from_numpy(base.depth_n[:, None]).to(device)
+    v = torch.from_numpy(base.valid[:, None]).to(device)
+    edges_np = canny_edges(noisy.color_rgb, noisy.valid)
     e = None if edges_np is None else torch.from_numpy(edges_np[:, None]).to(device)
+    side = side_inputs(e, torch.from_numpy(noisy.depth_n[:, None]).to(device), d, v)
     if config.method == "regressor":
         model = load_regressor(_weights(config, "regressor")).to(device)
 
@@ -137,7 +144,7 @@ def run_network(renders: DepthRenders, config: EnhanceConfig) -> NDArray[np.floa
     total = torch.zeros_like(d)
     with torch.no_grad():
         for k in range(config.ensemble):
-            t = [None if x is None else dihedral(x, k) for x in (d, v, e)]
+            t = [dihedral(x, k) for x in (d, v, side)]
             total += dihedral(net(*t), k, inverse=True)
     enhanced = (total / config.ensemble)[:, 0].cpu().numpy().astype(np.float32)
-    return np.where(renders.valid, enhanced, renders.depth_n)
+    return np.where(base.valid, enhanced, base.depth_n)

@@ -19,7 +19,7 @@ import torch
 from torch import nn
 
 from pipeline.enhance.data import DataConfig, DepthPairs
-from pipeline.enhance.models.common import RESIDUAL_SCALE
+from pipeline.enhance.models.common import RESIDUAL_SCALE, side_inputs
 from pipeline.enhance.models.controlnet import ControlNet
 from pipeline.enhance.models.regressor import RegressorConfig, ResidualUNet
 from pipeline.enhance.models.unet import LatentUNet, UNetConfig
@@ -161,6 +161,7 @@ class CropSampler:
     def __init__(self, pairs: DepthPairs, crop: int, seed: int) -> None:
         self.deg = torch.from_numpy(pairs.degraded_n)
         self.deg_valid = torch.from_numpy(pairs.degraded_valid)
+        self.noisy = torch.from_numpy(pairs.noisy_n)
         self.clean = torch.from_numpy(pairs.clean_n)
         self.edges = torch.from_numpy(pairs.edges)
         # Self-occlusion changes make a few huge residuals that no enhancer should chase.
@@ -170,11 +171,11 @@ class CropSampler:
         self.rng = np.random.default_rng(seed)
 
     def batch(self, size: int, device: torch.device) -> tuple[torch.Tensor, ...]:
-        """(degraded depth, its validity, clean depth, loss mask, colour edges), each
-        (size, 1, crop, crop); the edges as float 0/1."""
+        """(base depth, its validity, clean depth, loss mask), each (size, 1, crop, crop), and
+        the (size, 2, crop, crop) side inputs (`side_inputs`)."""
         n, h, w = self.deg.shape
         c = self.crop
-        out: list[list[torch.Tensor]] = [[], [], [], [], []]
+        out: list[list[torch.Tensor]] = [[], [], [], [], [], []]
         while len(out[0]) < size:
             i = int(self.rng.integers(n))
             y, x = int(self.rng.integers(h - c + 1)), int(self.rng.integers(w - c + 1))
@@ -183,7 +184,7 @@ class CropSampler:
                 continue
             parts = [
                 t[i, y : y + c, x : x + c]
-                for t in (self.deg, self.deg_valid, self.clean, self.mask, self.edges)
+                for t in (self.deg, self.deg_valid, self.clean, self.mask, self.edges, self.noisy)
             ]
             if self.rng.random() < 0.5:
                 parts = [p.flip(-1) for p in parts]
@@ -193,8 +194,10 @@ class CropSampler:
                 parts = [p.transpose(-1, -2) for p in parts]
             for lst, p in zip(out, parts, strict=True):
                 lst.append(p)
-        deg, valid, clean, mask, edges = (torch.stack(lst)[:, None].to(device) for lst in out)
-        return deg, valid, clean, mask, edges.float()
+        deg, valid, clean, mask, edges, noisy = (
+            torch.stack(lst)[:, None].to(device) for lst in out
+        )
+        return deg, valid, clean, mask, side_inputs(edges, noisy, deg, valid)
 
 
 def masked_mse(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -313,8 +316,8 @@ def train_regressor(
     sampler = CropSampler(train, config.crop, seed)
 
     def step_loss() -> torch.Tensor:
-        deg, deg_valid, clean, mask, edges = sampler.batch(config.batch, device)
-        return masked_mse(model(deg, deg_valid, edges), clean, mask)
+        deg, deg_valid, clean, mask, side = sampler.batch(config.batch, device)
+        return masked_mse(model(deg, deg_valid, side), clean, mask)
 
     log = _fit(
         "regressor",
@@ -350,10 +353,10 @@ def train_vae(
     warm_steps = max(1.0, config.kl_warmup_fraction * config.vae_budget.steps)
 
     def step_loss() -> torch.Tensor:
-        deg, deg_valid, clean, mask, edges = sampler.batch(config.batch, device)
+        deg, deg_valid, clean, mask, side = sampler.batch(config.batch, device)
         posterior = vae.encode(clean, deg_valid)
         z = posterior.sample()
-        recon = vae.decode(z, deg, deg_valid, edges)
+        recon = vae.decode(z, deg, deg_valid, side)
         kl_weight = config.kl_weight * min(1.0, calls[0] / warm_steps)
         calls[0] += 1
         kl_per_pixel = posterior.kl().mean() / (clean.shape[-2] * clean.shape[-1])
@@ -401,7 +404,7 @@ def train_ldm(
     vae.eval().requires_grad_(False)
 
     def step_loss() -> torch.Tensor:
-        deg, deg_valid, clean, _, edges = sampler.batch(config.batch, device)
+        deg, deg_valid, clean, _, side = sampler.batch(config.batch, device)
         with torch.no_grad():
             z0 = vae.encode(clean, deg_valid).mean * vae.latent_scale
         t_max = min(config.ldm_max_timestep, schedule.num_train_steps)
@@ -411,7 +414,7 @@ def train_ldm(
         s = (1 - alphas[t]).sqrt()[:, None, None, None]
         zt = a * z0 + s * noise
         v_target = a * noise - s * z0
-        residuals = control(zt, t, control.hint_of(deg, deg_valid, edges))
+        residuals = control(zt, t, control.hint_of(deg, deg_valid, side))
         v_pred = unet(zt, t, residuals)
         return ((v_pred - v_target) ** 2).mean()
 
@@ -451,10 +454,10 @@ def train_finetune(
         part.train().requires_grad_(True)
 
     def step_loss() -> torch.Tensor:
-        deg, deg_valid, clean, mask, edges = sampler.batch(config.batch, device)
+        deg, deg_valid, clean, mask, side = sampler.batch(config.batch, device)
         steps = int(sampler.rng.choice(config.finetune_steps))
         noise = torch.randn(latent_shape(deg), device=device)
-        pred = sample_depth(models, deg, deg_valid, steps, config.finetune_strength, noise, edges)
+        pred = sample_depth(models, deg, deg_valid, steps, config.finetune_strength, noise, side)
         return masked_mse(pred, clean, mask)
 
     trainable = [p for part in parts.values() for p in part.parameters()]

@@ -14,6 +14,7 @@ from numpy.typing import NDArray
 
 from pipeline.enhance.data import DepthPairs
 from pipeline.enhance.metrics import depth_edge_band
+from pipeline.enhance.models.common import side_inputs
 from pipeline.enhance.models.vae import DepthVAE, padded
 
 
@@ -53,18 +54,30 @@ def _batched(
             sel = idx[s : s + batch]
             d = torch.from_numpy(pairs.degraded_n[sel][:, None]).to(device)
             v = torch.from_numpy(pairs.degraded_valid[sel][:, None]).to(device)
-            e = torch.from_numpy(pairs.edges[sel][:, None]).float().to(device)
-            outs.append(fn(d, v, e)[:, 0].cpu().numpy())
+            e = torch.from_numpy(pairs.edges[sel][:, None]).to(device)
+            noisy = torch.from_numpy(pairs.noisy_n[sel][:, None]).to(device)
+            outs.append(fn(d, v, side_inputs(e, noisy, d, v))[:, 0].cpu().numpy())
     return np.concatenate(outs)
 
 
+def _inputs(pairs: DepthPairs, idx: NDArray[np.int64]) -> dict:
+    """Scores of the networks' two inputs: the noisy render and the pre-smoothed base."""
+    # Where the noisy render has no surface but the base has (their silhouettes differ), the
+    # base stands in: those pixels say nothing of the noisy render's depth.
+    noisy = np.where(pairs.noisy_n[idx] < 1.0, pairs.noisy_n[idx], pairs.degraded_n[idx])
+    return {
+        "noisy": depth_scores(noisy, pairs, idx),
+        "presmoothed": depth_scores(pairs.degraded_n[idx], pairs, idx),
+    }
+
+
 def validate_regressor(model, pairs: DepthPairs, count: int, device: torch.device) -> dict:
-    """Raw and regressed depth scores."""
+    """Input and regressed depth scores."""
     idx = _subset(pairs, count)
     model.eval()
     return {
         "views": len(idx),
-        "raw": depth_scores(pairs.degraded_n[idx], pairs, idx),
+        **_inputs(pairs, idx),
         "regressor": depth_scores(_batched(model, pairs, idx, device), pairs, idx),
     }
 
@@ -78,7 +91,7 @@ def validate_ldm(
 
     idx = _subset(pairs, count)
     vae.eval()
-    out: dict = {"views": len(idx), "raw": depth_scores(pairs.degraded_n[idx], pairs, idx)}
+    out: dict = {"views": len(idx), **_inputs(pairs, idx)}
 
     def decode_of(source: NDArray[np.float32]):
         def fn(d: torch.Tensor, v: torch.Tensor, e: torch.Tensor) -> torch.Tensor:

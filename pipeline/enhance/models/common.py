@@ -8,8 +8,11 @@ import torch
 import torch.nn.functional as nnf
 from torch import nn
 
-FEATURE_CHANNELS = 5
-"""mask, high-pass, d/dx, d/dy, colour edges."""
+SIDE_CHANNELS = 2
+"""Side inputs beside the base depth: colour edges (0/1) and the noisy render's depth minus
+the base depth (normalised; zero where either is invalid)."""
+FEATURE_CHANNELS = 4 + SIDE_CHANNELS
+"""mask, high-pass, d/dx, d/dy, then the side inputs."""
 DETAIL_SCALE = 100.0
 """Normalised depth is multiplied by this before the network sees differences (1 cm on a
 1 m model is about 0.6 after scaling)."""
@@ -17,14 +20,27 @@ RESIDUAL_SCALE = 0.01
 """Networks emit corrections in units of this much normalised depth."""
 
 
-def depth_features(
-    depth_n: torch.Tensor, valid: torch.Tensor, edges: torch.Tensor | None = None
+def side_inputs(
+    edges: torch.Tensor | None, noisy_n: torch.Tensor, base_n: torch.Tensor, valid: torch.Tensor
 ) -> torch.Tensor:
-    """(B, 5, H, W) shift-invariant features of (B, 1, H, W) normalised depth.
+    """(B, 2, H, W) side inputs from (B, 1, H, W) colour edges (None: no colour), the noisy
+    mesh's render and the base (pre-smoothed) render, valid where the base is."""
+    m = valid & (noisy_n < 1.0)
+    detail = torch.where(m, noisy_n - base_n, torch.zeros_like(base_n))
+    e = edges.to(base_n.dtype) if edges is not None else torch.zeros_like(base_n)
+    return torch.cat([e * valid, detail], dim=1)
 
-    Only depth differences enter (high-pass against a masked 5x5 mean, and forward
-    differences), scaled and clipped, so a network sees the same input whatever the absolute
-    depth; invalid pixels and differences across the silhouette are zero.
+
+def depth_features(
+    depth_n: torch.Tensor, valid: torch.Tensor, side: torch.Tensor | None = None
+) -> torch.Tensor:
+    """(B, 6, H, W) shift-invariant features of (B, 1, H, W) normalised depth and its
+    (B, 2, H, W) side inputs (`side_inputs`; None: all zero, as for a clean depth).
+
+    Only depth differences enter (high-pass against a masked 5x5 mean, forward differences,
+    and the noisy render's offset from the base), scaled and clipped, so a network sees the
+    same input whatever the absolute depth; invalid pixels and differences across the
+    silhouette are zero.
     """
     m = valid.to(depth_n.dtype)
     d = depth_n * m
@@ -35,9 +51,11 @@ def depth_features(
     dy = torch.zeros_like(d)
     dx[..., :, 1:] = (d[..., :, 1:] - d[..., :, :-1]) * m[..., :, 1:] * m[..., :, :-1]
     dy[..., 1:, :] = (d[..., 1:, :] - d[..., :-1, :]) * m[..., 1:, :] * m[..., :-1, :]
-    feats = [(f * DETAIL_SCALE).clamp(-3.0, 3.0) for f in (hp, dx, dy)]
-    e = edges if edges is not None else torch.zeros_like(d)
-    return torch.cat([m * 2.0 - 1.0, *feats, e], dim=1)
+    if side is None:
+        side = torch.zeros_like(d).expand(-1, SIDE_CHANNELS, -1, -1)
+    detail = side[:, 1:2] * m
+    feats = [(f * DETAIL_SCALE).clamp(-3.0, 3.0) for f in (hp, dx, dy, detail)]
+    return torch.cat([m * 2.0 - 1.0, *feats[:3], side[:, 0:1], feats[3]], dim=1)
 
 
 def group_norm(channels: int) -> nn.GroupNorm:

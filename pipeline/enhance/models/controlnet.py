@@ -1,5 +1,6 @@
-"""ControlNet: a trainable copy of the U-Net encoder that reads the degraded depth (and colour
-edges) and adds its features to the U-Net's through zero-initialised convolutions."""
+"""ControlNet: a trainable copy of the U-Net encoder that reads the base depth and its side
+inputs (colour edges, the noisy render's detail) and adds its features to the U-Net's through
+zero-initialised convolutions."""
 
 from __future__ import annotations
 
@@ -46,11 +47,11 @@ class ControlNet(nn.Module):
         self,
         degraded_n: torch.Tensor,
         degraded_valid: torch.Tensor,
-        edges: torch.Tensor | None = None,
+        side: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """The conditioning on the latent grid; it depends on neither noise nor timestep, so a
         sampler computes it once."""
-        return self.hint(depth_features(degraded_n, degraded_valid, edges))
+        return self.hint(depth_features(degraded_n, degraded_valid, side))
 
     def forward(self, z: torch.Tensor, t: torch.Tensor, hint: torch.Tensor) -> list[torch.Tensor]:
         """Residuals for the U-Net's skips and middle block from a noisy latent and the hint."""

@@ -46,10 +46,10 @@ class ResidualUNet(nn.Module):
         self.levels = len(ch)
 
     def forward(
-        self, depth_n: torch.Tensor, valid: torch.Tensor, edges: torch.Tensor | None = None
+        self, depth_n: torch.Tensor, valid: torch.Tensor, side: torch.Tensor | None = None
     ) -> torch.Tensor:
         """(B, 1, H, W) enhanced normalised depth from degraded depth and its validity mask."""
-        x, (h, w) = pad_to_multiple(depth_features(depth_n, valid, edges), 2 ** (self.levels - 1))
+        x, (h, w) = pad_to_multiple(depth_features(depth_n, valid, side), 2 ** (self.levels - 1))
         x = self.conv_in(x)
         skips = []
         for i, block in enumerate(self.down):

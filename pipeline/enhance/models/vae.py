@@ -103,10 +103,10 @@ class DepthVAE(nn.Module):
         latent: torch.Tensor,
         guide_depth_n: torch.Tensor,
         guide_valid: torch.Tensor,
-        edges: torch.Tensor | None = None,
+        side: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """(B, 1, H, W) depth from a latent, guided by the degraded depth it should correct."""
-        g = self.guide(depth_features(guide_depth_n, guide_valid, edges))
+        g = self.guide(depth_features(guide_depth_n, guide_valid, side))
         x = self.up_blocks[0](torch.cat([self.from_latent(latent), g[3]], dim=1))
         for level, block in zip((2, 1, 0), self.up_blocks[1:], strict=True):
             x = nnf.interpolate(x, size=g[level].shape[-2:], mode="nearest")

@@ -23,7 +23,7 @@ class LDMModels:
     unet: LatentUNet
     """Latent denoiser (v-prediction)."""
     controlnet: ControlNet
-    """Conditioning branch on the degraded depth and colour edges."""
+    """Conditioning branch on the base depth and its side inputs (colour edges, noisy detail)."""
 
 
 def sample_depth(
@@ -33,7 +33,7 @@ def sample_depth(
     steps: int,
     strength: float,
     noise: torch.Tensor,
-    edges: torch.Tensor | None = None,
+    side: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """(B, 1, H, W) enhanced depth: the whole sampler, differentiable, so end-to-end
     fine-tuning trains exactly what inference runs.
@@ -42,7 +42,7 @@ def sample_depth(
     """
     schedule = DDPMSchedule()
     d, v, (h, w) = padded(depth_n, valid)
-    e = None if edges is None else padded(edges, valid)[0]
+    e = None if side is None else padded(side, valid)[0]
     scale = models.vae.latent_scale
     z_start = models.vae.encode(d, v).mean * scale
     hint = models.controlnet.hint_of(d, v, e)
@@ -72,7 +72,7 @@ def enhance_depth_ldm(
     steps: int,
     strength: float,
     seed: int,
-    edges: torch.Tensor | None = None,
+    side: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """(B, 1, H, W) enhanced normalised depth from (B, 1, H, W) degraded depth and mask.
 
@@ -81,4 +81,4 @@ def enhance_depth_ldm(
     """
     gen = torch.Generator(device="cpu").manual_seed(seed)
     noise = torch.randn(latent_shape(depth_n), generator=gen).to(depth_n.device)
-    return sample_depth(models, depth_n, valid, steps, strength, noise, edges)
+    return sample_depth(models, depth_n, valid, steps, strength, noise, side)

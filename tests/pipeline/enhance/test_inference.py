@@ -36,10 +36,10 @@ def test_full_ensemble_is_equivariant_to_flips(random_regressor):
     flipped = DepthRenders(renders.views, renders.depth_n[:, :, ::-1].copy(),
                            renders.valid[:, :, ::-1].copy())
     base = EnhanceConfig(method="regressor", weights={"regressor": random_regressor})
-    one = run_network(renders, base)
-    assert not np.allclose(run_network(flipped, base)[:, :, ::-1], one, atol=1e-6)
-    eight = run_network(renders, replace(base, ensemble=8))
-    assert np.allclose(run_network(flipped, replace(base, ensemble=8))[:, :, ::-1], eight,
+    one = run_network(renders, renders, base)
+    assert not np.allclose(run_network(flipped, flipped, base)[:, :, ::-1], one, atol=1e-6)
+    eight = run_network(renders, renders, replace(base, ensemble=8))
+    assert np.allclose(run_network(flipped, flipped, replace(base, ensemble=8))[:, :, ::-1], eight,
                        atol=1e-6)
 
 

@@ -2,7 +2,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.enhance.models.common import depth_features
+from pipeline.enhance.models.common import depth_features, side_inputs
 from pipeline.enhance.models.controlnet import ControlNet
 from pipeline.enhance.models.regressor import RegressorConfig, ResidualUNet
 from pipeline.enhance.models.unet import LatentUNet, UNetConfig
@@ -26,6 +26,26 @@ def test_features_do_not_depend_on_absolute_depth(shift):
     a = depth_features(d, v)
     b = depth_features(torch.where(v, d + shift, d), v)
     assert torch.allclose(a, b, atol=1e-4)
+
+
+@settings(max_examples=10, deadline=None)
+@given(st.floats(-0.3, 0.3), st.floats(-0.02, 0.02))
+def test_side_inputs_read_only_the_noisy_renders_offset_from_the_base(shift, offset):
+    """A shift of both renders changes nothing; the noisy render's offset from the base is
+    what the detail channel carries, zero where the noisy render has no surface."""
+    d, v = _depth()
+    noisy = torch.where(v, d + offset, d)
+    noisy[..., 6:8] = 1.0  # a hole in the noisy render only
+    a = depth_features(d, v, side_inputs(None, noisy, d, v))
+    moved = torch.where(v, d + shift, d)
+    b = depth_features(moved, v, side_inputs(None, torch.where(noisy < 1, noisy + shift, 1.0),
+                                             moved, v))
+    assert torch.allclose(a, b, atol=1e-3)
+    detail = a[:, 5]
+    assert torch.allclose(detail[..., 8:], torch.full_like(detail[..., 8:], offset * 100.0)
+                          .clamp(-3, 3), atol=1e-3)
+    assert float(detail[..., :4].abs().max()) == 0.0  # no base surface
+    assert float(detail[..., 6:8].abs().max()) == 0.0  # no noisy surface
 
 
 def test_vae_latent_is_four_channels_at_one_eighth():
