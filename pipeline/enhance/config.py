@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -105,7 +105,10 @@ def enhance_mesh(
     enhanced = enhance_renders(base_renders, renders, config)
     if progress is not None:
         progress(0.8)
-    result, _ = update_vertices(base, base_renders, enhanced, config.update)
+    update = config.update
+    if base is not mesh:
+        update = replace(update, unseen_follow_moves=True)
+    result, _ = update_vertices(base, base_renders, enhanced, update)
     if config.remesh_iterations > 0:
         result = light_remesh(result, config.remesh_iterations)
     if progress is not None:

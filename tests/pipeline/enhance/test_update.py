@@ -3,7 +3,7 @@ import pytest
 
 from pipeline.enhance.render import make_views, render_depth, view_directions
 from pipeline.enhance.update import UpdateConfig, update_vertices
-from tests.pipeline.enhance.conftest import radial_rms_m
+from tests.pipeline.enhance.conftest import radial_rms_m, sphere
 
 
 def test_clean_depth_pulls_noisy_vertices_onto_the_surface(noisy_sphere):
@@ -47,3 +47,20 @@ def test_shape_mismatch_is_named(noisy_sphere):
     r = render_depth(noisy, views)
     with pytest.raises(ValueError, match="enhanced_depth_n"):
         update_vertices(noisy, r, r.depth_n[:1], UpdateConfig())
+
+
+def test_unseen_vertices_follow_their_neighbours_moves_on_a_smooth_mesh():
+    """Two views leave the back of a clean sphere unseen. Smoothing the unseen positions
+    flattens it; following the seen neighbours' (here zero) moves keeps it on the sphere."""
+    mesh = sphere(0.5, 24)
+    views = make_views(mesh.vertices_m, view_directions(2), 96)
+    r = render_depth(mesh, views)
+    follow, seen = update_vertices(mesh, r, r.depth_n, UpdateConfig(unseen_follow_moves=True))
+    smoothed, _ = update_vertices(mesh, r, r.depth_n, UpdateConfig())
+    assert 0.2 < (~seen).mean() < 0.8
+
+    def radial_error(m):
+        return np.abs(np.linalg.norm(m.vertices_m, axis=1) - 0.5)[~seen].max()
+
+    assert radial_error(follow) < 0.002
+    assert radial_error(smoothed) > 5 * radial_error(follow)
