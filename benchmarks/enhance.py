@@ -97,7 +97,7 @@ def depth_level(weights: dict | None, views: int, seed: int, meshes: Path) -> di
     from pipeline.enhance.inference import load_ldm, load_regressor
     from pipeline.enhance.models.common import side_inputs
     from pipeline.enhance.pipelines.depth_ldm import enhance_depth_ldm
-    from pipeline.enhance.validate import depth_scores
+    from pipeline.enhance.validate import depth_scores, noisy_input
     from pipeline.enhance.weights import shipped_bytes
     from pipeline.io.mesh_io import read_mesh
 
@@ -106,8 +106,7 @@ def depth_level(weights: dict | None, views: int, seed: int, meshes: Path) -> di
     pairs = make_pairs(val, DataConfig(poses_per_mesh=2), seed + 1000)
     idx = np.unique(np.linspace(0, len(pairs.source) - 1, views).round().astype(np.int64))
     deg, valid = pairs.degraded_n[idx], pairs.degraded_valid[idx]
-    # The base stands in where the noisy render has no surface (their silhouettes differ).
-    noisy = np.where(pairs.noisy_n[idx] < 1.0, pairs.noisy_n[idx], deg)
+    noisy = noisy_input(pairs, idx)
     out = {"views": len(idx), "sources": sorted(set(pairs.source)), "units": "1e-3 of depth range"}
     # The image filters get the noisy render, as they would without the networks' pre-smoothing.
     out["noisy"] = depth_scores(noisy, pairs, idx)

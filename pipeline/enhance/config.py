@@ -96,18 +96,16 @@ def enhance_mesh(
         return baselines.bilateral_denoise(mesh, config.iterations)
     views = make_views(mesh.vertices_m, view_directions(config.views), config.resolution)
     renders = render_depth(mesh, views, with_color=True)
-    base, base_renders = mesh, renders
+    base, base_renders, update = mesh, renders, config.update
     if config.method != "views" and config.presmooth_iterations > 0:
         base = baselines.laplacian_smooth(mesh, config.presmooth_iterations)
         base_renders = render_depth(base, views, with_color=False)
+        update = replace(update, unseen_follow_moves=True)
     if progress is not None:
         progress(0.2)
     enhanced = enhance_renders(base_renders, renders, config)
     if progress is not None:
         progress(0.8)
-    update = config.update
-    if base is not mesh:
-        update = replace(update, unseen_follow_moves=True)
     result, _ = update_vertices(base, base_renders, enhanced, update)
     if config.remesh_iterations > 0:
         result = light_remesh(result, config.remesh_iterations)

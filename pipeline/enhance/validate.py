@@ -63,13 +63,16 @@ def _batched(
     return np.concatenate(outs)
 
 
+def noisy_input(pairs: DepthPairs, idx: NDArray[np.int64]) -> NDArray[np.float32]:
+    """(n, H, W) the noisy renders, the base standing in where they have no surface but the
+    base has (their silhouettes differ): those pixels say nothing of the noisy depth."""
+    return np.where(pairs.noisy_n[idx] < 1.0, pairs.noisy_n[idx], pairs.degraded_n[idx])
+
+
 def _inputs(pairs: DepthPairs, idx: NDArray[np.int64]) -> dict:
     """Scores of the networks' two inputs: the noisy render and the pre-smoothed base."""
-    # Where the noisy render has no surface but the base has (their silhouettes differ), the
-    # base stands in: those pixels say nothing of the noisy render's depth.
-    noisy = np.where(pairs.noisy_n[idx] < 1.0, pairs.noisy_n[idx], pairs.degraded_n[idx])
     return {
-        "noisy": depth_scores(noisy, pairs, idx),
+        "noisy": depth_scores(noisy_input(pairs, idx), pairs, idx),
         "presmoothed": depth_scores(pairs.degraded_n[idx], pairs, idx),
     }
 

@@ -53,9 +53,10 @@ def depth_features(
     dy[..., 1:, :] = (d[..., 1:, :] - d[..., :-1, :]) * m[..., 1:, :] * m[..., :-1, :]
     if side is None:
         side = torch.zeros_like(d).expand(-1, SIDE_CHANNELS, -1, -1)
-    detail = side[:, 1:2] * m
-    feats = [(f * DETAIL_SCALE).clamp(-3.0, 3.0) for f in (hp, dx, dy, detail)]
-    return torch.cat([m * 2.0 - 1.0, *feats[:3], side[:, 0:1], feats[3]], dim=1)
+    hp, dx, dy, detail = (
+        (f * DETAIL_SCALE).clamp(-3.0, 3.0) for f in (hp, dx, dy, side[:, 1:2] * m)
+    )
+    return torch.cat([m * 2.0 - 1.0, hp, dx, dy, side[:, 0:1], detail], dim=1)
 
 
 def group_norm(channels: int) -> nn.GroupNorm:

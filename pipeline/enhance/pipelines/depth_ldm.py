@@ -42,10 +42,10 @@ def sample_depth(
     """
     schedule = DDPMSchedule()
     d, v, (h, w) = padded(depth_n, valid)
-    e = None if side is None else padded(side, valid)[0]
+    side_p = None if side is None else padded(side, valid)[0]
     scale = models.vae.latent_scale
     z_start = models.vae.encode(d, v).mean * scale
-    hint = models.controlnet.hint_of(d, v, e)
+    hint = models.controlnet.hint_of(d, v, side_p)
     ts = ddim.timesteps(schedule, steps, strength)
     a0 = float(schedule.alphas_cumprod[ts[0]])
     z = a0**0.5 * z_start + (1.0 - a0) ** 0.5 * noise
@@ -54,7 +54,7 @@ def sample_depth(
         v_pred = models.unet(z, t_batch, models.controlnet(z, t_batch, hint))
         t_prev = int(ts[i + 1]) if i + 1 < len(ts) else -1
         z = ddim.step(z, v_pred, int(t), t_prev, schedule)
-    out = models.vae.decode(z / scale, d, v, e)
+    out = models.vae.decode(z / scale, d, v, side_p)
     return out[..., :h, :w]
 
 
