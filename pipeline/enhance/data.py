@@ -241,56 +241,84 @@ def make_pairs(
     if not meshes:
         raise ValueError("meshes: need at least one source mesh")
     rng = np.random.default_rng(seed)
-    deg, deg_valid, noisy_out, clean, mask, edges, names = [], [], [], [], [], [], []
+    parts: list[DepthPairs] = []
     total = len(meshes) * config.poses_per_mesh
-    done = 0
     for name, mesh in meshes:
-        extent = float(np.ptp(mesh.vertices_m, axis=0).max())
-        if extent <= 0:
-            raise ValueError(f"meshes[{name}]: degenerate mesh")
-        base = TriangleMesh((mesh.vertices_m - mesh.vertices_m.mean(axis=0)) / extent, mesh.faces)
         # Remeshing does not depend on the pose, so one remesh serves all of a mesh's poses.
-        remeshed = isotropic(base, rng.uniform(*config.edge_fraction))
+        remeshed = isotropic(unit_extent(mesh, name), rng.uniform(*config.edge_fraction))
         for _ in range(config.poses_per_mesh):
-            fine = remeshed.with_vertices(remeshed.vertices_m @ random_rotation(rng).T)
-            if rng.random() < config.color_probability:
-                fine = replace(fine, vertex_colors=synthetic_colors(fine, rng))
-            noisy = noisy_along_normals(fine, _noise_amplitude(config, rng), rng)
-            forwards = rng.normal(size=(config.views_per_pose, 3))
-            views = make_views(noisy.vertices_m, forwards, config.resolution)
-            r_noisy = render_depth(noisy, views, with_color=True)
-            r_base = render_depth(
-                laplacian_smooth(noisy, config.presmooth_iterations), views, with_color=False
-            )
-            r_clean = render_depth(fine, views, with_color=False)
-            # Every degradation below only shrinks the valid mask, so the render's edges
-            # masked by a view's final mask are that view's edges.
-            pose_edges = canny_edges(r_noisy.color_rgb, r_noisy.valid)
-            for k in range(views.count):
-                d, v = r_noisy.depth_n[k].copy(), r_noisy.valid[k].copy()
-                b, bv = r_base.depth_n[k].copy(), r_base.valid[k].copy()
-                # Sensor noise marks the noisy surface; the smoothed one averages it away.
-                if rng.random() < config.kinect_probability:
-                    d = _kinect_noise(d, v, views.depth_range_m, rng)
-                if rng.random() < config.downup_probability:
-                    d, v = _down_up(d, v)
-                    b, bv = _down_up(b, bv)
-                if rng.random() < config.hole_probability:
-                    holes = _holes(np.ones_like(v), rng)
-                    v, bv = v & holes, bv & holes
-                d = np.where(v, d, 1.0).astype(np.float32)
-                b = np.where(bv, b, 1.0).astype(np.float32)
-                edges.append(np.zeros_like(bv) if pose_edges is None else bv & (pose_edges[k] > 0))
-                deg.append(b)
-                deg_valid.append(bv)
-                noisy_out.append(d)
-                clean.append(r_clean.depth_n[k])
-                mask.append(bv & r_clean.valid[k])
-                names.append(name)
-            done += 1
+            parts.append(pose_pairs(name, remeshed, config, rng))
             if progress is not None:
-                progress(done / total)
+                progress(len(parts) / total)
+    return concat_pairs(parts)
+
+
+def unit_extent(mesh: TriangleMesh, name: str) -> TriangleMesh:
+    """The mesh centred and scaled to a largest extent of 1."""
+    extent = float(np.ptp(mesh.vertices_m, axis=0).max())
+    if extent <= 0:
+        raise ValueError(f"meshes[{name}]: degenerate mesh")
+    return TriangleMesh((mesh.vertices_m - mesh.vertices_m.mean(axis=0)) / extent, mesh.faces)
+
+
+def concat_pairs(parts: Sequence[DepthPairs]) -> DepthPairs:
+    """The pairs of `parts`, in order, as one set."""
+    def cat(field: str) -> NDArray:
+        return np.concatenate([getattr(p, field) for p in parts])
+
     return DepthPairs(
-        np.stack(deg), np.stack(deg_valid), np.stack(noisy_out), np.stack(clean), np.stack(mask),
-        np.stack(edges), tuple(names),
+        cat("degraded_n"), cat("degraded_valid"), cat("noisy_n"), cat("clean_n"),
+        cat("loss_mask"), cat("edges"), tuple(n for p in parts for n in p.source),
     )
+
+
+def pose_pairs(
+    name: str, remeshed: TriangleMesh, config: DataConfig, rng: np.random.Generator
+) -> DepthPairs:
+    """The `views_per_pose` pairs of one random pose of a remeshed unit-extent mesh."""
+    fine = remeshed.with_vertices(remeshed.vertices_m @ random_rotation(rng).T)
+    if rng.random() < config.color_probability:
+        fine = replace(fine, vertex_colors=synthetic_colors(fine, rng))
+    noisy = noisy_along_normals(fine, _noise_amplitude(config, rng), rng)
+    forwards = rng.normal(size=(config.views_per_pose, 3))
+    views = make_views(noisy.vertices_m, forwards, config.resolution)
+    r_noisy = render_depth(noisy, views, with_color=True)
+    r_base = render_depth(
+        laplacian_smooth(noisy, config.presmooth_iterations), views, with_color=False
+    )
+    r_clean = render_depth(fine, views, with_color=False)
+    # Every degradation below only shrinks the valid mask, so the render's edges
+    # masked by a view's final mask are that view's edges.
+    pose_edges = canny_edges(r_noisy.color_rgb, r_noisy.valid)
+    deg, deg_valid, noisy_out, mask, edges = [], [], [], [], []
+    for k in range(views.count):
+        d, v = r_noisy.depth_n[k].copy(), r_noisy.valid[k].copy()
+        b, bv = r_base.depth_n[k].copy(), r_base.valid[k].copy()
+        # Sensor noise marks the noisy surface; the smoothed one averages it away.
+        if rng.random() < config.kinect_probability:
+            d = _kinect_noise(d, v, views.depth_range_m, rng)
+        if rng.random() < config.downup_probability:
+            d, v = _down_up(d, v)
+            b, bv = _down_up(b, bv)
+        if rng.random() < config.hole_probability:
+            holes = _holes(np.ones_like(v), rng)
+            v, bv = v & holes, bv & holes
+        noisy_out.append(np.where(v, d, 1.0).astype(np.float32))
+        deg.append(np.where(bv, b, 1.0).astype(np.float32))
+        deg_valid.append(bv)
+        edges.append(np.zeros_like(bv) if pose_edges is None else bv & (pose_edges[k] > 0))
+        mask.append(bv & r_clean.valid[k])
+    return DepthPairs(
+        np.stack(deg), np.stack(deg_valid), np.stack(noisy_out), r_clean.depth_n.copy(),
+        np.stack(mask), np.stack(edges), (name,) * views.count,
+    )
+
+
+def same_surface_mask(pairs: DepthPairs, idx: int | slice = slice(None)) -> NDArray[np.bool_]:
+    """(n, H, W), or (H, W) for one index: loss-mask pixels where neither input sees another
+    surface than the clean render (silhouettes, self-occlusion). No enhancer could recover
+    them, and their few huge residuals would dominate a squared loss or a score."""
+    clean = pairs.clean_n[idx]
+    mask = pairs.loss_mask[idx] & (np.abs(clean - pairs.degraded_n[idx]) < 0.05)
+    noisy = pairs.noisy_n[idx]
+    return mask & ((noisy >= 1.0) | (np.abs(clean - noisy) < 0.05))

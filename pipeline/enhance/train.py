@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from pipeline.enhance.data import DataConfig, DepthPairs
+from pipeline.enhance.data import DataConfig, DepthPairs, same_surface_mask
 from pipeline.enhance.models.common import RESIDUAL_SCALE, side_inputs
 from pipeline.enhance.models.controlnet import ControlNet
 from pipeline.enhance.models.regressor import RegressorConfig, ResidualUNet
@@ -156,48 +156,60 @@ def scaled(config: TrainConfig, factor: float) -> TrainConfig:
 
 
 class CropSampler:
-    """Random crops of the pairs with random flips and transposes, mostly on the surface."""
+    """Random crops of the pairs with random flips and transposes, mostly on the surface.
+
+    The images live as one (6, N, H, W) float tensor on the device of the first batch and
+    crops are gathered for a whole batch at once: on a GPU a crop-by-crop Python loop took
+    as long as the training step it fed.
+    """
 
     def __init__(self, pairs: DepthPairs, crop: int, seed: int) -> None:
-        self.deg = torch.from_numpy(pairs.degraded_n)
-        self.deg_valid = torch.from_numpy(pairs.degraded_valid)
-        self.noisy = torch.from_numpy(pairs.noisy_n)
-        self.clean = torch.from_numpy(pairs.clean_n)
-        self.edges = torch.from_numpy(pairs.edges)
-        # Self-occlusion changes make a few huge residuals that no enhancer should chase.
-        mask = pairs.loss_mask & (np.abs(pairs.clean_n - pairs.degraded_n) < 0.05)
-        self.mask = torch.from_numpy(mask)
+        mask = same_surface_mask(pairs)
+        self.images = torch.from_numpy(np.stack([
+            pairs.degraded_n, pairs.degraded_valid, pairs.clean_n, mask, pairs.edges,
+            pairs.noisy_n,
+        ]).astype(np.float32))
         self.crop = min(crop, pairs.degraded_n.shape[-1])
         self.rng = np.random.default_rng(seed)
 
     def batch(self, size: int, device: torch.device) -> tuple[torch.Tensor, ...]:
         """(base depth, its validity, clean depth, loss mask), each (size, 1, crop, crop), and
         the (size, 2, crop, crop) side inputs (`side_inputs`)."""
-        n, h, w = self.deg.shape
+        self.images = self.images.to(device)
+        i, y, x = self._origins(size, device)
         c = self.crop
-        out: list[list[torch.Tensor]] = [[], [], [], [], [], []]
-        while len(out[0]) < size:
-            i = int(self.rng.integers(n))
-            y, x = int(self.rng.integers(h - c + 1)), int(self.rng.integers(w - c + 1))
-            m = self.mask[i, y : y + c, x : x + c]
-            if m.float().mean() < 0.2:
-                continue
-            parts = [
-                t[i, y : y + c, x : x + c]
-                for t in (self.deg, self.deg_valid, self.clean, self.mask, self.edges, self.noisy)
-            ]
-            if self.rng.random() < 0.5:
-                parts = [p.flip(-1) for p in parts]
-            if self.rng.random() < 0.5:
-                parts = [p.flip(-2) for p in parts]
-            if self.rng.random() < 0.5:
-                parts = [p.transpose(-1, -2) for p in parts]
-            for lst, p in zip(out, parts, strict=True):
-                lst.append(p)
-        deg, valid, clean, mask, edges, noisy = (
-            torch.stack(lst)[:, None].to(device) for lst in out
+        span = torch.arange(c, device=device)
+        p, q = span[:, None].expand(c, c), span[None, :].expand(c, c)
+        # A flip or transpose of a crop is a reordering of the pixels it gathers.
+        flip_x, flip_y, swap = (
+            torch.from_numpy(self.rng.random(size) < 0.5).to(device)[:, None, None]
+            for _ in range(3)
         )
+        u, v = torch.where(swap, q, p), torch.where(swap, p, q)
+        rows = y[:, None, None] + torch.where(flip_y, c - 1 - u, u)
+        cols = x[:, None, None] + torch.where(flip_x, c - 1 - v, v)
+        crops = self.images[:, i[:, None, None], rows, cols].transpose(0, 1)  # (size, 6, c, c)
+        deg, valid, clean, mask, edges, noisy = crops.split(1, dim=1)
+        valid, mask = valid > 0.5, mask > 0.5
         return deg, valid, clean, mask, side_inputs(edges, noisy, deg, valid)
+
+    def _origins(self, size: int, device: torch.device) -> tuple[torch.Tensor, ...]:
+        """(size,) image indices and crop corners whose crops are at least 20 % loss mask."""
+        _, n, h, w = self.images.shape
+        c = self.crop
+        span = torch.arange(c, device=device)
+        found: list[torch.Tensor] = []
+        while sum(len(f) for f in found) < size:
+            draw = torch.from_numpy(np.stack([
+                self.rng.integers(n, size=2 * size),
+                self.rng.integers(h - c + 1, size=2 * size),
+                self.rng.integers(w - c + 1, size=2 * size),
+            ], axis=1)).to(device)
+            i, y, x = draw.unbind(1)
+            mask = self.images[3, i[:, None, None], (y[:, None] + span)[:, :, None],
+                               (x[:, None] + span)[:, None, :]]
+            found.append(draw[mask.mean(dim=(1, 2)) >= 0.2])
+        return torch.cat(found)[:size].unbind(1)
 
 
 def masked_mse(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:

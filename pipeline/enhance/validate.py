@@ -12,7 +12,7 @@ import numpy as np
 import torch
 from numpy.typing import NDArray
 
-from pipeline.enhance.data import DepthPairs
+from pipeline.enhance.data import DepthPairs, same_surface_mask
 from pipeline.enhance.metrics import depth_edge_band
 from pipeline.enhance.models.common import side_inputs
 from pipeline.enhance.models.vae import DepthVAE, padded
@@ -27,10 +27,7 @@ def depth_scores(pred: NDArray, pairs: DepthPairs, idx: NDArray[np.int64]) -> di
     """RMSE and 3-pixel edge-band RMSE (thousandths of depth range) of `pred` (n, H, W)."""
     sq, band_sq, n_px, n_band = 0.0, 0.0, 0, 0
     for j, i in enumerate(idx):
-        # Pixels where either input sees another surface than the clean render (silhouettes,
-        # self-occlusion) are left out: no filter of that input could recover them.
-        mask = pairs.loss_mask[i] & (np.abs(pairs.clean_n[i] - pairs.degraded_n[i]) < 0.05)
-        mask &= (pairs.noisy_n[i] >= 1.0) | (np.abs(pairs.clean_n[i] - pairs.noisy_n[i]) < 0.05)
+        mask = same_surface_mask(pairs, i)
         err = (pred[j] - pairs.clean_n[i])[mask]
         sq += float(np.sum(err.astype(np.float64) ** 2))
         n_px += err.size

@@ -7,7 +7,13 @@ import pytest
 import torch
 
 from pipeline.enhance import EnhanceConfig, enhance_mesh
-from pipeline.enhance.data import DataConfig, make_pairs, procedural_meshes
+from pipeline.enhance.data import (
+    DataConfig,
+    DepthPairs,
+    make_pairs,
+    procedural_meshes,
+    same_surface_mask,
+)
 from pipeline.enhance.inference import weights_from_bytes, weights_to_bytes
 from pipeline.enhance.pipelines.depth_ldm import (
     LDMModels,
@@ -17,6 +23,7 @@ from pipeline.enhance.pipelines.depth_ldm import (
 )
 from pipeline.enhance.train import (
     CONFIGS,
+    CropSampler,
     StageBudget,
     checkpoint_from_bytes,
     checkpoint_to_bytes,
@@ -220,3 +227,43 @@ def test_coloured_poses_give_edges_and_uncoloured_none():
     assert coloured.edges.shape == coloured.degraded_n.shape
     assert all(coloured.edges[k].any() for k in range(len(coloured.source)))
     assert not (coloured.edges & ~coloured.degraded_valid).any()  # only on the surface
+
+
+def _ramp_pairs(n: int = 3, side: int = 40) -> DepthPairs:
+    """Pairs whose base depth is a unique ramp (each window identifiable by its minimum) and
+    whose clean depth is the base plus 0.01; the mask covers the left 70 % of each image."""
+    base = (np.arange(n * side * side, dtype=np.float32) / (n * side * side)).reshape(n, side, side)
+    valid = np.ones_like(base, bool)
+    mask = np.zeros_like(valid)
+    mask[:, :, : int(0.7 * side)] = True
+    return DepthPairs(base, valid, base.copy(), base + 0.01, mask, np.zeros_like(valid),
+                      ("ramp",) * n)
+
+
+def test_crops_are_flipped_or_transposed_windows_of_one_pair():
+    pairs = _ramp_pairs()
+    sampler = CropSampler(pairs, crop=8, seed=3)
+    deg, valid, clean, mask, side = sampler.batch(64, torch.device("cpu"))
+    assert deg.shape == (64, 1, 8, 8) and side.shape == (64, 2, 8, 8)
+    assert torch.allclose(clean - deg, torch.full_like(deg, 0.01), atol=1e-6)
+    seen = set()
+    for crop, m in zip(deg[:, 0].numpy(), mask[:, 0].numpy(), strict=True):
+        i, y, x = (int(a[0]) for a in np.nonzero(pairs.degraded_n == crop.min()))
+        window = pairs.degraded_n[i, y : y + 8, x : x + 8]
+        variants = [np.rot90(w, k) for w in (window, window.T) for k in range(4)]
+        matches = [k for k, v in enumerate(variants) if np.array_equal(v, crop)]
+        assert matches, "a crop is no dihedral transform of a window"
+        seen.add(matches[0])
+        assert m.mean() >= 0.2  # crops mostly off the mask are redrawn
+    assert len(seen) == 8  # every flip/transpose combination occurs
+
+
+def test_surface_mask_drops_pixels_where_either_input_sees_another_surface():
+    pairs = _ramp_pairs(1, 8)
+    far = replace(pairs, noisy_n=pairs.noisy_n.copy(), degraded_n=pairs.degraded_n.copy())
+    far.noisy_n[0, 0, 0] += 0.2  # the noisy render sees another surface here
+    far.degraded_n[0, 1, 1] += 0.2  # and the base here
+    far.noisy_n[0, 2, 2] = 1.0  # no noisy hit: only the base counts
+    mask = same_surface_mask(far)
+    assert not mask[0, 0, 0] and not mask[0, 1, 1] and mask[0, 2, 2]
+    assert mask.sum() == pairs.loss_mask.sum() - 2
