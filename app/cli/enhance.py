@@ -37,6 +37,10 @@ def enhance_mesh_command(
             help="Laplacian iterations before the networks (as the weights were trained).",
         ),
     ] = 10,
+    gain: Annotated[
+        float,
+        typer.Option("--gain", help="Share of the networks' depth correction followed (0, 2]."),
+    ] = 0.5,
     seed: Annotated[int, typer.Option("--seed")] = 0,
     ensemble: Annotated[
         int, typer.Option("--ensemble", help="Flipped copies of each view averaged: 1|2|4|8.")
@@ -75,6 +79,7 @@ def enhance_mesh_command(
         ensemble=ensemble,
         iterations=iterations,
         presmooth_iterations=presmooth,
+        correction_gain=gain,
         device=device,
         weights=loaded,
     )

@@ -32,12 +32,15 @@ def train(
     budget_scale: Annotated[
         float, typer.Option("--budget-scale", help="Multiply every stage's steps and minutes.")
     ] = 1.0,
+    workers: Annotated[
+        int, typer.Option("--workers", min=1, help="Processes making the training pairs.")
+    ] = 1,
 ) -> None:
     """Train the enhancement models from meshes (never the bunny: it is the test model)."""
     from tqdm import tqdm
 
     from pipeline.enhance import train as tr
-    from pipeline.enhance.data import make_pairs, procedural_meshes
+    from pipeline.enhance.data import procedural_meshes
     from pipeline.enhance.inference import weights_to_bytes
     from pipeline.enhance.validate import validate_ldm, validate_regressor
     from pipeline.io.mesh_io import read_mesh
@@ -67,8 +70,8 @@ def train(
     report["data"] = {"train": [n for n, _ in train_set], "validation": [n for n, _ in val_set]}
     t0 = time.monotonic()
     with tqdm(total=100, desc="data", unit="%") as bar:
-        train_pairs = make_pairs(train_set, cfg.data, seed, lambda f: _bar(bar, f))
-    val_pairs = make_pairs(val_set, cfg.data, seed + 1000)
+        train_pairs = training_pairs(train_set, cfg.data, seed, workers, lambda f: _bar(bar, f))
+    val_pairs = training_pairs(val_set, cfg.data, seed + 1000, workers)
     report["data"].update(
         {
             "train_pairs": len(train_pairs.source),
@@ -174,6 +177,38 @@ def train(
     (out / "MODEL_CARD.md").write_text(model_card(report))
 
 
+POSES_PER_JOB = 8
+
+
+def training_pairs(items, data, seed: int, workers: int, progress=None):
+    """`make_pairs` over jobs of at most POSES_PER_JOB poses of one mesh, each job with its
+    own seed (and so its own remesh edge length), run by `workers` processes; the pairs do
+    not depend on `workers`."""
+    from concurrent.futures import ProcessPoolExecutor
+    from dataclasses import replace
+    from multiprocessing import get_context
+
+    from pipeline.enhance.data import concat_pairs, make_pairs
+
+    sources, configs = [], []
+    for name, mesh in items:
+        for start in range(0, data.poses_per_mesh, POSES_PER_JOB):
+            sources.append([(name, mesh)])
+            configs.append(replace(data, poses_per_mesh=min(POSES_PER_JOB,
+                                                            data.poses_per_mesh - start)))
+    seeds = [seed * 100_003 + k for k in range(len(sources))]
+    parts = []
+    # spawn, not fork: the parent may already hold CUDA or torch's thread pools.
+    with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:
+        done = (pool.map(make_pairs, sources, configs, seeds) if workers > 1
+                else map(make_pairs, sources, configs, seeds))
+        for part in done:
+            parts.append(part)
+            if progress is not None:
+                progress(len(parts) / len(sources))
+    return concat_pairs(parts)
+
+
 def _stage_file(stage: str) -> str:
     """The file whose presence marks a stage finished (fine-tuning rewrites vae and ldm)."""
     return "finetune.done" if stage == "finetune" else f"{stage}.safetensors"
@@ -196,6 +231,7 @@ def model_card(report: dict) -> str:
         "Trained in-house by `volumesh train`; no pretrained weights were used.",
         "",
         f"- configuration: `{cfg['name']}`, seed {report['seed']}, device `{report['device']}`",
+        *([f"- {report['note']}"] if report.get("note") else []),
         f"- training meshes: {', '.join(report['data']['train'])}",
         f"- validation meshes (held apart by mesh): {', '.join(report['data']['validation'])}",
         "- never trained on: stanford-bunny (the benchmark's test model)",

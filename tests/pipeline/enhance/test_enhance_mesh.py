@@ -27,3 +27,33 @@ def test_the_view_update_ends_with_a_light_remesh(
     assert _sliver_share(remeshed) < _sliver_share(kept)
     # Projected back onto the updated surface: no further from the sphere than before.
     assert radial_rms_m(remeshed) < radial_rms_m(kept) * 1.1
+
+
+def test_the_update_follows_the_chosen_share_of_the_network_correction(
+        noisy_sphere: tuple[TriangleMesh, TriangleMesh]) -> None:
+    from pipeline.enhance import baselines
+
+    _, noisy = noisy_sphere
+    base = baselines.laplacian_smooth(noisy, 10)  # what the networks' corrections start from
+
+    def moves(gain: float) -> np.ndarray:
+        out = enhance_mesh(noisy, EnhanceConfig(method="regressor", resolution=96,
+                                                remesh_iterations=0, correction_gain=gain))
+        return out.vertices_m - base.vertices_m
+
+    half, full = moves(0.5), moves(1.0)
+    moved = np.linalg.norm(full, axis=1) > 1e-5
+    assert moved.mean() > 0.5
+    ratio = np.linalg.norm(full[moved], axis=1) / np.linalg.norm(half[moved], axis=1).clip(1e-12)
+    # Twice the correction, twice the move, short of the moves that the update's gates (step
+    # cap, one-surface lookup) drop once the correction grows.
+    assert 1.6 < float(np.median(ratio)) <= 2.05
+
+
+def test_a_correction_gain_out_of_range_is_named() -> None:
+    import pytest
+
+    from pipeline.enhance.config import validate_config
+
+    with pytest.raises(ValueError, match="correction_gain"):
+        validate_config(EnhanceConfig(correction_gain=0.0))
