@@ -228,7 +228,8 @@ def model_card(report: dict) -> str:
     lines = [
         "# volumesh depth enhancer weights",
         "",
-        "Trained in-house by `volumesh train`; no pretrained weights were used.",
+        "Trained in-house by `volumesh train`'s stages (how they were run: below); no "
+        "pretrained weights were used.",
         "",
         f"- configuration: `{cfg['name']}`, seed {report['seed']}, device `{report['device']}`",
         *([f"- {report['note']}"] if report.get("note") else []),
