@@ -3,9 +3,9 @@
 
     .venv/bin/python benchmarks/enhance_gain.py [--mesh spot --mesh fandisk] > gain.json
 
-The networks run once per mesh and method; each gain then scales their correction of the
-pre-smoothed renders before the view update (no light remesh, so only the gain differs). Choose
-the gain on validation meshes (spot, fandisk), never on the bunny, the test model.
+`enhance_mesh` per mesh, method and gain, without the light remesh so only the gain differs
+between runs of a method (the networks are deterministic). Choose the gain on validation
+meshes (spot, fandisk), never on the bunny, the test model.
 """
 
 from __future__ import annotations
@@ -13,10 +13,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from dataclasses import replace
 from pathlib import Path
-
-import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -24,29 +21,19 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from enhance import bunny_protocol  # noqa: E402
 
-from pipeline.enhance import baselines  # noqa: E402
-from pipeline.enhance.config import EnhanceConfig  # noqa: E402
-from pipeline.enhance.inference import run_network  # noqa: E402
+from pipeline.enhance import EnhanceConfig, enhance_mesh  # noqa: E402
 from pipeline.enhance.metrics import c2m_summary  # noqa: E402
-from pipeline.enhance.render import make_views, render_depth, view_directions  # noqa: E402
-from pipeline.enhance.update import UpdateConfig, update_vertices  # noqa: E402
 
 
 def sweep(name: str, meshes: Path, gains: list[float], views: int) -> dict:
     truth, noisy = bunny_protocol(meshes, 0, name=name)
-    cams = make_views(noisy.vertices_m, view_directions(views), 256)
-    r_noisy = render_depth(noisy, cams)
-    base = baselines.laplacian_smooth(noisy, EnhanceConfig().presmooth_iterations)
-    r_base = render_depth(base, cams, with_color=False)
-    update = replace(UpdateConfig(), unseen_follow_moves=True)
     out: dict = {}
     for method in ("ldm", "regressor"):
-        pred = run_network(r_base, r_noisy, EnhanceConfig(method=method, views=views))
         out[method] = {}
         for gain in gains:
-            depth = (r_base.depth_n + gain * (pred - r_base.depth_n)).astype(np.float32)
-            moved, _ = update_vertices(base, r_base, depth, update)
-            out[method][str(gain)] = c2m_summary(moved, truth)
+            config = EnhanceConfig(method=method, views=views, correction_gain=gain,
+                                   remesh_iterations=0)
+            out[method][str(gain)] = c2m_summary(enhance_mesh(noisy, config), truth)
     return out
 
 

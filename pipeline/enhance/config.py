@@ -43,10 +43,10 @@ class EnhanceConfig:
     correction_gain: float = 0.5
     """Share of the networks' depth correction (enhanced minus base depth) the update
     follows. Chosen on the validation meshes (spot, fandisk; not the bunny) under the
-    benchmark's protocol: at 1.0 the meshes came out 0.2-0.3 mm outside the truth and C2M RMS
-    was 5-10 % worse than at 0.5, although at depth level the corrections are calibrated
-    (least-squares gain 0.92-1.0 on validation renders); why the mesh update wants half of
-    them is not understood yet."""
+    benchmark's protocol (`benchmarks/enhance_gain.py`): at 1.0 the meshes came out 0.2-0.3 mm
+    outside the truth and C2M RMS was 5-10 % worse than at 0.5. On that protocol's views the
+    corrections are over-confident already at depth level (least-squares gain 0.7-0.8, against
+    0.92-1.0 on training-like renders); why the mesh update wants still less is open."""
     update: UpdateConfig = field(default_factory=UpdateConfig)
     """How vertices follow the enhanced depth."""
     remesh_iterations: int = 1
@@ -113,10 +113,6 @@ def enhance_mesh(
     if progress is not None:
         progress(0.2)
     enhanced = enhance_renders(base_renders, renders, config)
-    if config.method != "views":
-        enhanced = base_renders.depth_n + config.correction_gain * (
-            enhanced - base_renders.depth_n
-        )
     if progress is not None:
         progress(0.8)
     result, _ = update_vertices(base, base_renders, enhanced, update)
@@ -143,10 +139,12 @@ def light_remesh(mesh: TriangleMesh, iterations: int) -> TriangleMesh:
 def enhance_renders(
     base: DepthRenders, noisy: DepthRenders, config: EnhanceConfig
 ) -> NDArray[np.float32]:
-    """(N, H, W) enhanced normalised depth of all views, in one batch: `base` corrected (the
-    pre-smoothed mesh's renders), `noisy` (the mesh's own) read beside it."""
+    """(N, H, W) enhanced normalised depth of all views, in one batch: `base` (the
+    pre-smoothed mesh's renders) moved by `config.correction_gain` of the network's correction,
+    `noisy` (the mesh's own renders) read beside it."""
     if config.method == "views":
         return base.depth_n
     from pipeline.enhance.inference import run_network
 
-    return run_network(base, noisy, config)
+    predicted = run_network(base, noisy, config)
+    return base.depth_n + config.correction_gain * (predicted - base.depth_n)
