@@ -89,28 +89,24 @@ def best_of_sweep(noisy, truth, method: str, counts) -> dict:
 
 
 def depth_level(weights: dict | None, views: int, seed: int, meshes: Path) -> dict:
-    """RMSE and 3-pixel edge-band RMSE on validation renders of held-apart meshes."""
+    """RMSE and 3-pixel edge-band RMSE on validation renders of held-apart meshes, and how
+    the networks' corrections are calibrated on the benchmark's degradation alone."""
     import cv2
-    import torch
 
     from pipeline.enhance.data import DataConfig, make_pairs, procedural_meshes
-    from pipeline.enhance.inference import load_ldm, load_regressor
-    from pipeline.enhance.models.common import side_inputs
-    from pipeline.enhance.pipelines.depth_ldm import enhance_depth_ldm
     from pipeline.enhance.validate import depth_scores, noisy_input
-    from pipeline.enhance.weights import shipped_bytes
     from pipeline.io.mesh_io import read_mesh
 
     val = [(n, read_mesh(meshes / f"{n}.obj")) for n in ("spot", "fandisk")]
     val += procedural_meshes(np.random.default_rng(seed), 7)[-1:]
     pairs = make_pairs(val, DataConfig(poses_per_mesh=2), seed + 1000)
     idx = np.unique(np.linspace(0, len(pairs.source) - 1, views).round().astype(np.int64))
-    deg, valid = pairs.degraded_n[idx], pairs.degraded_valid[idx]
+    valid = pairs.degraded_valid[idx]
     noisy = noisy_input(pairs, idx)
     out = {"views": len(idx), "sources": sorted(set(pairs.source)), "units": "1e-3 of depth range"}
     # The image filters get the noisy render, as they would without the networks' pre-smoothing.
     out["noisy"] = depth_scores(noisy, pairs, idx)
-    out["presmoothed"] = depth_scores(deg, pairs, idx)
+    out["presmoothed"] = depth_scores(pairs.degraded_n[idx], pairs, idx)
     bil = np.stack([cv2.bilateralFilter(d, 5, 0.01, 2.0) for d in noisy])
     out["bilateral_filter"] = depth_scores(np.where(valid, bil, noisy), pairs, idx)
     jbu = []
@@ -122,41 +118,75 @@ def depth_level(weights: dict | None, views: int, seed: int, meshes: Path) -> di
     out["joint_bilateral_upsampling"] = depth_scores(
         np.where(valid, np.stack(jbu), noisy), pairs, idx
     )
+    for name, pred in network_predictions(weights, pairs, idx, (1, 4, 10)).items():
+        out[name] = {"error": pred} if isinstance(pred, str) else depth_scores(pred, pairs, idx)
+    # The benchmark's degradation alone (its noise and edge length relative to the mesh,
+    # no sensor noise, holes, resampling or colour), on the same held-apart meshes.
+    only_vertex_noise = DataConfig(
+        poses_per_mesh=2, edge_fraction=(0.005, 0.005), noise_fraction=(0.01, 0.01),
+        light_noise_probability=0.0, kinect_probability=0.0, hole_probability=0.0,
+        downup_probability=0.0, color_probability=0.0,
+    )
+    out["vertex_noise_only"] = calibration(
+        make_pairs(val[:2], only_vertex_noise, seed + 2000), weights, views
+    )
+    return out
+
+
+def calibration(pairs, weights: dict | None, views: int) -> dict:
+    """Depth scores of the base and the networks, with how their corrections match the true
+    ones (`correction_calibration`: least-squares gain, correlation, bias)."""
+    from pipeline.enhance.data import same_surface_mask
+    from pipeline.enhance.metrics import correction_calibration
+    from pipeline.enhance.validate import depth_scores
+
+    idx = np.unique(np.linspace(0, len(pairs.source) - 1, views).round().astype(np.int64))
+    base, clean, mask = pairs.degraded_n[idx], pairs.clean_n[idx], same_surface_mask(pairs, idx)
+    out: dict = {"views": len(idx), "presmoothed": depth_scores(base, pairs, idx)}
+    for name, pred in network_predictions(weights, pairs, idx, (4,)).items():
+        out[name] = {"error": pred} if isinstance(pred, str) else {
+            **depth_scores(pred, pairs, idx), **correction_calibration(pred, base, clean, mask)
+        }
+    return out
+
+
+def network_predictions(weights: dict | None, pairs, idx, ldm_steps: tuple[int, ...]) -> dict:
+    """(n, H, W) predictions of the regressor and of the LDM at each step count on the pairs
+    `idx`; a model whose weights do not load gives its error message instead."""
+    import torch
+
+    from pipeline.enhance.inference import load_ldm, load_regressor
+    from pipeline.enhance.models.common import side_inputs
+    from pipeline.enhance.pipelines.depth_ldm import enhance_depth_ldm
+    from pipeline.enhance.validate import noisy_input
+    from pipeline.enhance.weights import shipped_bytes
 
     def get(name: str) -> bytes:
         return weights[name] if weights and name in weights else shipped_bytes(name)
 
-    d_t = torch.from_numpy(deg[:, None])
-    v_t = torch.from_numpy(valid[:, None])
-    side_t = side_inputs(
-        torch.from_numpy(pairs.edges[idx][:, None]), torch.from_numpy(noisy[:, None]), d_t, v_t
-    )
+    d_t = torch.from_numpy(pairs.degraded_n[idx][:, None])
+    v_t = torch.from_numpy(pairs.degraded_valid[idx][:, None])
+    side_t = side_inputs(torch.from_numpy(pairs.edges[idx][:, None]),
+                         torch.from_numpy(noisy_input(pairs, idx)[:, None]), d_t, v_t)
+    batches = [slice(i, i + 6) for i in range(0, len(idx), 6)]
+    out: dict = {}
     with torch.no_grad():
         try:
             reg = load_regressor(get("regressor"))
-            pred = torch.cat(
-                [
-                    reg(d_t[i : i + 6], v_t[i : i + 6], side_t[i : i + 6])
-                    for i in range(0, len(idx), 6)
-                ]
-            )
-            out["regressor"] = depth_scores(pred[:, 0].numpy(), pairs, idx)
+            out["regressor"] = torch.cat(
+                [reg(d_t[b], v_t[b], side_t[b]) for b in batches]
+            )[:, 0].numpy()
         except ValueError as exc:
-            out["regressor"] = {"error": str(exc)}
+            out["regressor"] = str(exc)
         try:
             models = load_ldm(get("vae"), get("ldm"))
-            for steps in (1, 4, 10):
-                pred = torch.cat(
-                    [
-                        enhance_depth_ldm(
-                            models, d_t[i : i + 6], v_t[i : i + 6], steps, 0.5, 0, side_t[i : i + 6]
-                        )
-                        for i in range(0, len(idx), 6)
-                    ]
-                )
-                out[f"ldm_{steps}_steps"] = depth_scores(pred[:, 0].numpy(), pairs, idx)
+            for steps in ldm_steps:
+                out[f"ldm_{steps}_steps"] = torch.cat(
+                    [enhance_depth_ldm(models, d_t[b], v_t[b], steps, 0.5, 0, side_t[b])
+                     for b in batches]
+                )[:, 0].numpy()
         except ValueError as exc:
-            out["ldm"] = {"error": str(exc)}
+            out["ldm"] = str(exc)
     return out
 
 

@@ -314,7 +314,9 @@ def pose_pairs(
     )
 
 
-def same_surface_mask(pairs: DepthPairs, idx: int | slice = slice(None)) -> NDArray[np.bool_]:
+def same_surface_mask(
+    pairs: DepthPairs, idx: int | slice | NDArray[np.int64] = slice(None)
+) -> NDArray[np.bool_]:
     """(n, H, W), or (H, W) for one index: loss-mask pixels where neither input sees another
     surface than the clean render (silhouettes, self-occlusion). No enhancer could recover
     them, and their few huge residuals would dominate a squared loss or a score."""

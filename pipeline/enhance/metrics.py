@@ -62,3 +62,19 @@ def depth_edge_band(depth_n: NDArray, valid: NDArray[np.bool_], jump: float, wid
     edge = ((gx > jump) | (gy > jump)).astype(np.uint8)
     kernel = np.ones((2 * width_px + 1, 2 * width_px + 1), np.uint8)
     return cv2.dilate(edge, kernel).astype(bool) & valid
+
+
+def correction_calibration(
+    pred_n: NDArray, base_n: NDArray, clean_n: NDArray, mask: NDArray[np.bool_]
+) -> dict[str, float]:
+    """How a predicted depth correction (pred - base) matches the true one (clean - base)
+    over `mask`: the least-squares gain of true on predicted (1: calibrated, below 1:
+    over-confident), their correlation, and the mean of (pred - clean) in thousandths of the
+    depth range (negative: the prediction lies nearer the camera than the truth)."""
+    true = (clean_n - base_n)[mask].astype(np.float64)
+    predicted = (pred_n - base_n)[mask].astype(np.float64)
+    return {
+        "gain": float(np.sum(true * predicted) / np.sum(predicted**2)),
+        "correlation": float(np.corrcoef(true, predicted)[0, 1]),
+        "bias_permille": 1e3 * float(np.mean(predicted - true)),
+    }

@@ -367,7 +367,7 @@ def train_vae(
 
     def step_loss() -> torch.Tensor:
         deg, deg_valid, clean, mask, side = sampler.batch(config.batch, device)
-        posterior = vae.encode(clean, deg_valid)
+        posterior = vae.encode(clean, deg_valid, deg)
         z = posterior.sample()
         recon = vae.decode(z, deg, deg_valid, side)
         kl_weight = config.kl_weight * min(1.0, calls[0] / warm_steps)
@@ -390,7 +390,7 @@ def train_vae(
     vae.eval()
     with torch.no_grad():
         deg, deg_valid, clean, _, _ = sampler.batch(max(config.batch, 8), device)
-        z = vae.encode(clean, deg_valid).mean
+        z = vae.encode(clean, deg_valid, deg).mean
         vae.latent_scale.fill_(1.0 / float(z.std().clamp_min(1e-6)))
     return vae, log
 
@@ -419,7 +419,7 @@ def train_ldm(
     def step_loss() -> torch.Tensor:
         deg, deg_valid, clean, _, side = sampler.batch(config.batch, device)
         with torch.no_grad():
-            z0 = vae.encode(clean, deg_valid).mean * vae.latent_scale
+            z0 = vae.encode(clean, deg_valid, deg).mean * vae.latent_scale
         t_max = min(config.ldm_max_timestep, schedule.num_train_steps)
         t = torch.randint(0, t_max, (z0.shape[0],), device=device)
         noise = torch.randn_like(z0)

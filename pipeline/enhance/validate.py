@@ -104,7 +104,7 @@ def validate_ldm(
             xp, vp, (h, w) = padded(x, v)
             dp, _, _ = padded(d, v)
             ep, _, _ = padded(e, v)
-            return vae.decode(vae.encode(xp, vp).mean, dp, vp, ep)[..., :h, :w]
+            return vae.decode(vae.encode(xp, vp, dp).mean, dp, vp, ep)[..., :h, :w]
 
         return fn
 

@@ -14,6 +14,7 @@ import torch.nn.functional as nnf
 from torch import nn
 
 from pipeline.enhance.models.common import (
+    DETAIL_SCALE,
     FEATURE_CHANNELS,
     RESIDUAL_SCALE,
     ResBlock,
@@ -34,6 +35,12 @@ class VAEConfig:
     """Starting log-variance of the posterior. Starting at the prior's 0 makes early latents
     pure noise, and a decoder that also sees the degraded depth learns to ignore them for good
     (posterior collapse); a small start keeps the latent informative from the first step."""
+    encode_correction: bool = False
+    """The encoder also reads the depth's offset from the guide (the correction the decoder
+    must add). Its other features are local and shift-invariant, so without the offset the
+    latent cannot hold the smooth part of a correction (the pre-smoothing's shrinkage, left
+    low-frequency noise): the shipped VAE decodes its clean and degraded latents alike
+    (2.26 against 2.29 on held-apart renders), leaving the diffusion nothing to do."""
 
 
 class DiagonalGaussian:
@@ -54,9 +61,10 @@ class DiagonalGaussian:
 class _Pyramid(nn.Module):
     """Depth features at 1, 1/2, 1/4, 1/8 resolution."""
 
-    def __init__(self, ch: tuple[int, int, int, int]) -> None:
+    def __init__(self, ch: tuple[int, int, int, int], in_channels: int = FEATURE_CHANNELS
+                 ) -> None:
         super().__init__()
-        self.conv_in = nn.Conv2d(FEATURE_CHANNELS, ch[0], 3, padding=1)
+        self.conv_in = nn.Conv2d(in_channels, ch[0], 3, padding=1)
         self.blocks = nn.ModuleList(ResBlock(ch[max(i - 1, 0)], ch[i]) for i in range(4))
         self.downs = nn.ModuleList(
             nn.Conv2d(ch[i], ch[i], 3, stride=2, padding=1) for i in range(3)
@@ -79,7 +87,8 @@ class DepthVAE(nn.Module):
     def __init__(self, config: VAEConfig) -> None:
         super().__init__()
         ch = config.channels
-        self.encoder = _Pyramid(ch)
+        self.encode_correction = config.encode_correction
+        self.encoder = _Pyramid(ch, FEATURE_CHANNELS + int(config.encode_correction))
         self.to_moments = nn.Conv2d(ch[3], 2 * LATENT_CHANNELS, 3, padding=1)
         if self.to_moments.bias is not None:
             with torch.no_grad():
@@ -94,9 +103,16 @@ class DepthVAE(nn.Module):
         self.register_buffer("latent_scale", torch.ones(()))
         self.latent_scale: torch.Tensor
 
-    def encode(self, depth_n: torch.Tensor, valid: torch.Tensor) -> DiagonalGaussian:
-        """Posterior over the (B, 4, H/8, W/8) latent of (B, 1, H, W) depth; H, W divisible by 8."""
-        return DiagonalGaussian(self.to_moments(self.encoder(depth_features(depth_n, valid))[-1]))
+    def encode(
+        self, depth_n: torch.Tensor, valid: torch.Tensor, guide_depth_n: torch.Tensor
+    ) -> DiagonalGaussian:
+        """Posterior over the (B, 4, H/8, W/8) latent of (B, 1, H, W) depth; H, W divisible by
+        8. `guide_depth_n` is the depth the decoder will be guided by (the degraded one)."""
+        feats = depth_features(depth_n, valid)
+        if self.encode_correction:
+            offset = (depth_n - guide_depth_n) * valid.to(depth_n.dtype) * DETAIL_SCALE
+            feats = torch.cat([feats, offset.clamp(-3.0, 3.0)], dim=1)
+        return DiagonalGaussian(self.to_moments(self.encoder(feats)[-1]))
 
     def decode(
         self,

@@ -3,7 +3,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.enhance.metrics import c2m_summary, depth_edge_band, normal_error_deg, signed_c2m
+from pipeline.enhance.metrics import (
+    c2m_summary,
+    correction_calibration,
+    depth_edge_band,
+    normal_error_deg,
+    signed_c2m,
+)
 from tests.pipeline.enhance.conftest import sphere
 
 
@@ -44,3 +50,20 @@ def test_scaled_sphere_has_signed_mean_of_the_gap(scale):
     s = c2m_summary(result, truth)
     # Vertices lie on the ideal sphere, slightly outside the flat faces: the gap plus a bit.
     assert s["c2m_mean_mm"] == pytest.approx((scale - 1) * 500, abs=0.8)
+
+
+@settings(max_examples=20, deadline=None)
+@given(st.floats(0.25, 4.0), st.floats(-0.01, 0.01))
+def test_calibration_reads_a_scaled_and_shifted_correction(scale, shift):
+    """A prediction that moves k times the true correction has gain 1/k and correlation 1;
+    a constant added to it shows as its bias, in thousandths."""
+    rng = np.random.default_rng(0)
+    base = rng.uniform(0.4, 0.6, (2, 16, 16))
+    clean = base + rng.normal(0.0, 0.003, base.shape)
+    mask = np.ones(base.shape, dtype=bool)
+    mask[:, :2] = False
+    scaled = correction_calibration(base + scale * (clean - base), base, clean, mask)
+    assert scaled["gain"] == pytest.approx(1.0 / scale, rel=1e-6)
+    assert scaled["correlation"] == pytest.approx(1.0, abs=1e-9)
+    shifted = correction_calibration(clean + shift, base, clean, mask)
+    assert shifted["bias_permille"] == pytest.approx(1e3 * shift, abs=1e-9)

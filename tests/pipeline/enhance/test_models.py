@@ -51,11 +51,30 @@ def test_side_inputs_read_only_the_noisy_renders_offset_from_the_base(shift, off
 def test_vae_latent_is_four_channels_at_one_eighth():
     d, v = _depth(h=40, w=48)
     vae = DepthVAE(VAEConfig(channels=(8, 8, 16, 16)))
-    post = vae.encode(d, v)
+    post = vae.encode(d, v, d)
     assert post.mean.shape == (2, 4, 5, 6)
     assert post.kl().shape == (2,)
     out = vae.decode(post.sample(), d, v)
     assert out.shape == d.shape
+
+
+@settings(max_examples=8, deadline=None)
+@given(st.floats(-0.2, 0.2), st.floats(0.002, 0.02))
+def test_vae_latent_holds_the_offset_from_the_guide_only_when_configured(shift, offset):
+    """Without `encode_correction` the encoder reads only local shape (a depth offset from
+    the guide leaves the latent as it is); with it, the offset changes the latent, while a
+    shift of depth and guide together still does not."""
+    d, v = _depth()
+    moved = torch.where(v, d + offset, d)
+    torch.manual_seed(0)
+    plain = DepthVAE(VAEConfig(channels=(8, 8, 16, 16)))
+    assert torch.allclose(plain.encode(moved, v, d).mean, plain.encode(d, v, d).mean, atol=1e-5)
+    torch.manual_seed(0)
+    vae = DepthVAE(VAEConfig(channels=(8, 8, 16, 16), encode_correction=True))
+    base = vae.encode(d, v, d).mean
+    assert not torch.allclose(vae.encode(moved, v, d).mean, base, atol=1e-4)
+    both = vae.encode(torch.where(v, d + shift, d), v, torch.where(v, d + shift, d)).mean
+    assert torch.allclose(both, base, atol=1e-4)
 
 
 def test_controlnet_starts_as_a_no_op():
@@ -84,5 +103,5 @@ def test_regressor_is_fully_convolutional_and_residual():
 def test_vae_posterior_starts_narrow():
     """A small starting variance keeps early latents informative (against posterior collapse)."""
     d, v = _depth()
-    post = DepthVAE(VAEConfig(channels=(8, 8, 16, 16), initial_logvar=-6.0)).encode(d, v)
+    post = DepthVAE(VAEConfig(channels=(8, 8, 16, 16), initial_logvar=-6.0)).encode(d, v, d)
     assert float(post.logvar.mean()) < -4.0
