@@ -43,7 +43,7 @@ class VAEConfig:
     (2.26 against 2.29 on held-apart renders). With it, after the same 800 CPU steps, the clean
     latent decodes to 1.93 against the degraded one's 3.05 (without: 2.64 against 2.73), but
     the whole LDM trained on it came out worse at an equal budget (2.47 against 2.40 after
-    2000 U-Net and 800 end-to-end steps), so it is off (README, Enhancement)."""
+    2000 U-Net and 800 end-to-end steps), so it is off (`benchmarks/enhance_vae_offset.py`)."""
 
 
 class DiagonalGaussian:
