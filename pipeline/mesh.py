@@ -54,3 +54,10 @@ def vertex_normals(
     length = np.linalg.norm(normals, axis=1, keepdims=True)
     unit = np.divide(normals, length, out=np.zeros_like(normals), where=length > 0)
     return unit.astype(np.float32)
+
+
+def mean_edge_length_m(mesh: TriangleMesh) -> float:
+    """Mean length of the faces' edges (an interior edge counted once per face), metres."""
+    edges = np.concatenate([mesh.faces[:, [0, 1]], mesh.faces[:, [1, 2]], mesh.faces[:, [2, 0]]])
+    lengths_m = np.linalg.norm(mesh.vertices_m[edges[:, 0]] - mesh.vertices_m[edges[:, 1]], axis=1)
+    return float(lengths_m.mean())

@@ -406,6 +406,8 @@ def _stage_remesh(capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],
 def _stage_enhance(capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],
                    config: ReconstructConfig, progress: Progress | None) -> Artifacts:
     from pipeline.enhance import enhance_mesh
+    from pipeline.enhance.config import skips_enhancement
+    from pipeline.enhance.noise_level import noise_to_edge_ratio
 
     mesh = mesh_from_artifacts(inputs)
     out = enhance_mesh(mesh, config.enhancement, progress)
@@ -415,6 +417,8 @@ def _stage_enhance(capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],
     result: Artifacts = {"vertices_m": out.vertices_m, "faces": out.faces}
     return result | _stats("enhance", {
         "method": config.enhancement.method, "views": config.enhancement.views,
+        "noise_ratio": noise_to_edge_ratio(mesh),
+        "skipped_as_clean": skips_enhancement(mesh, config.enhancement),
         "triangles": out.face_count, "mean_offset_m": float(offset_m.mean()),
         "max_offset_m": float(offset_m.max())})
 

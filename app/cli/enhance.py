@@ -41,6 +41,14 @@ def enhance_mesh_command(
         float,
         typer.Option("--gain", help="Share of the networks' depth correction followed (0, 2]."),
     ] = 0.5,
+    min_noise_ratio: Annotated[
+        float,
+        typer.Option(
+            "--min-noise-ratio",
+            help="The networks leave a mesh less noisy than this (noise over mean edge "
+            "length) unchanged; 0 always enhances.",
+        ),
+    ] = 0.125,
     seed: Annotated[int, typer.Option("--seed")] = 0,
     ensemble: Annotated[
         int, typer.Option("--ensemble", help="Flipped copies of each view averaged: 1|2|4|8.")
@@ -57,7 +65,8 @@ def enhance_mesh_command(
     from tqdm import tqdm
 
     from pipeline.enhance import EnhanceConfig, enhance_mesh
-    from pipeline.enhance.config import validate_config
+    from pipeline.enhance.config import skips_enhancement, validate_config
+    from pipeline.enhance.noise_level import noise_to_edge_ratio
     from pipeline.io.mesh_io import read_mesh, write_ply
 
     loaded = None
@@ -80,11 +89,18 @@ def enhance_mesh_command(
         iterations=iterations,
         presmooth_iterations=presmooth,
         correction_gain=gain,
+        min_noise_ratio=min_noise_ratio,
         device=device,
         weights=loaded,
     )
     validate_config(config)
     mesh = read_mesh(mesh_in)
+    if skips_enhancement(mesh, config):
+        typer.echo(
+            f"enhance-mesh: {mesh_in}'s estimated noise, {noise_to_edge_ratio(mesh):.3f} of its "
+            f"edge length, is below --min-noise-ratio {min_noise_ratio}: written unchanged",
+            err=True,
+        )
     with tqdm(total=100, desc="enhance", unit="%") as bar:
 
         def progress(fraction: float) -> None:

@@ -18,7 +18,7 @@ def adjacency(faces: NDArray[np.int32], vertex_count: int) -> sp.csr_matrix:
     return a.tocsr()
 
 
-def _mean_operator(faces: NDArray[np.int32], vertex_count: int) -> sp.csr_matrix:
+def mean_operator(faces: NDArray[np.int32], vertex_count: int) -> sp.csr_matrix:
     """Row-normalised adjacency: (M @ v)[i] is the mean of i's neighbours (isolated: itself)."""
     a = adjacency(faces, vertex_count)
     deg = np.asarray(a.sum(axis=1)).ravel()
@@ -31,7 +31,7 @@ def laplacian_smooth(mesh: TriangleMesh, iterations: int, lam: float = 0.5) -> T
     """Uniform-weight Laplacian smoothing: v += lam * (mean of neighbours - v), repeated."""
     if iterations < 0:
         raise ValueError(f"iterations must be >= 0, got {iterations}")
-    m = _mean_operator(mesh.faces, mesh.vertex_count)
+    m = mean_operator(mesh.faces, mesh.vertex_count)
     v = mesh.vertices_m.copy()
     for _ in range(iterations):
         v = v + lam * (m @ v - v)
@@ -44,7 +44,7 @@ def taubin_smooth(
     """Taubin lambda|mu smoothing (shrink, then inflate): one iteration is one pair of steps."""
     if iterations < 0:
         raise ValueError(f"iterations must be >= 0, got {iterations}")
-    m = _mean_operator(mesh.faces, mesh.vertex_count)
+    m = mean_operator(mesh.faces, mesh.vertex_count)
     v = mesh.vertices_m.copy()
     for _ in range(iterations):
         v = v + lam * (m @ v - v)

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.enhance.baselines import _mean_operator
+from pipeline.enhance.baselines import mean_operator
 from pipeline.enhance.render import DepthRenders, project
 from pipeline.mesh import TriangleMesh, vertex_normals
 
@@ -73,7 +73,7 @@ def update_vertices(
             f"enhanced_depth_n has shape {enhanced_depth_n.shape}, renders {renders.depth_n.shape}"
         )
     v = mesh.vertices_m
-    mean_op = _mean_operator(mesh.faces, mesh.vertex_count)
+    mean_op = mean_operator(mesh.faces, mesh.vertex_count)
     normals = vertex_normals(v, mesh.faces).astype(np.float64)
     for _ in range(config.normal_smoothing):
         normals = mean_op @ normals

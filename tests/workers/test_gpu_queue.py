@@ -40,7 +40,7 @@ def test_only_the_gpu_worker_enhances(tmp_path: Path) -> None:
             capture = make_capture_zip(tmp_path, cameras=2, width=96, height=80)
             response = client.post("/api/v1/jobs", headers=auth, json={
                 "capture_id": upload_capture(client, auth, capture), **FAST_JOB, "enhance": True,
-                "enhancement": {"resolution": 64, "steps": 1}})
+                "enhancement": {"resolution": 64, "steps": 1, "min_noise_ratio": 0.0}})
             assert response.status_code == 202, response.text
             job = wait_job(client, response.json()["id"], {"succeeded", "failed"}, 180)
             assert job["state"] == "succeeded", job["error"]

@@ -38,7 +38,8 @@ def test_the_update_follows_the_chosen_share_of_the_network_correction(
 
     def moves(gain: float) -> np.ndarray:
         out = enhance_mesh(noisy, EnhanceConfig(method="regressor", resolution=96,
-                                                remesh_iterations=0, correction_gain=gain))
+                                                remesh_iterations=0, correction_gain=gain,
+                                                min_noise_ratio=0.0))
         return out.vertices_m - base.vertices_m
 
     half, full = moves(0.5), moves(1.0)
@@ -57,3 +58,30 @@ def test_a_correction_gain_out_of_range_is_named() -> None:
 
     with pytest.raises(ValueError, match="correction_gain"):
         validate_config(EnhanceConfig(correction_gain=0.0))
+
+
+def test_the_networks_leave_a_clean_mesh_and_enhance_a_noisy_one() -> None:
+    from pipeline.enhance.data import noisy_along_normals
+    from pipeline.enhance.noise_level import noise_to_edge_ratio
+    from pipeline.mesh import mean_edge_length_m
+    from tests.pipeline.enhance.conftest import sphere
+
+    clean = sphere(0.5, 40)
+    noisy = noisy_along_normals(clean, mean_edge_length_m(clean), np.random.default_rng(0))
+    config = EnhanceConfig(method="regressor", resolution=64, remesh_iterations=0)
+    assert noise_to_edge_ratio(clean) < config.min_noise_ratio < noise_to_edge_ratio(noisy)
+    assert enhance_mesh(clean, config) is clean
+    assert not np.allclose(enhance_mesh(noisy, config).vertices_m, noisy.vertices_m)
+    # 0 turns the gate off: the clean mesh is pre-smoothed and corrected like any other.
+    forced = enhance_mesh(clean, EnhanceConfig(method="regressor", resolution=64,
+                                               remesh_iterations=0, min_noise_ratio=0.0))
+    assert not np.allclose(forced.vertices_m, clean.vertices_m)
+
+
+def test_a_negative_noise_gate_is_named() -> None:
+    import pytest
+
+    from pipeline.enhance.config import validate_config
+
+    with pytest.raises(ValueError, match="min_noise_ratio"):
+        validate_config(EnhanceConfig(min_noise_ratio=-0.1))
