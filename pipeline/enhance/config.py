@@ -8,6 +8,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numpy.typing import NDArray
 
+from pipeline.enhance.noise_level import noise_to_edge_ratio
 from pipeline.enhance.render import DepthRenders, make_views, render_depth, view_directions
 from pipeline.enhance.update import UpdateConfig, update_vertices
 from pipeline.mesh import TriangleMesh, mean_edge_length_m
@@ -140,8 +141,6 @@ def enhance_mesh(
 def skips_enhancement(mesh: TriangleMesh, config: EnhanceConfig) -> bool:
     """Whether `enhance_mesh` leaves `mesh` as it is: a network method on a mesh whose
     estimated noise is below `config.min_noise_ratio`."""
-    from pipeline.enhance.noise_level import noise_to_edge_ratio
-
     if config.method not in ("ldm", "regressor") or config.min_noise_ratio == 0:
         return False
     return noise_to_edge_ratio(mesh) < config.min_noise_ratio
