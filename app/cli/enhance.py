@@ -17,7 +17,7 @@ def enhance_mesh_command(
     ],
     out: Annotated[Path, typer.Option("--out", help="Output .ply.")],
     method: Annotated[
-        str, typer.Option("--method", help="ldm|regressor|views|taubin|laplacian|bilateral")
+        str, typer.Option("--method", help="ldm|regressor|views|taubin|laplacian|twicing|bilateral")
     ] = "ldm",
     views: Annotated[int, typer.Option("--views", help="Depth views (six axis views first).")] = 6,
     resolution: Annotated[
@@ -37,6 +37,13 @@ def enhance_mesh_command(
             help="Laplacian iterations before the networks (as the weights were trained).",
         ),
     ] = 10,
+    presmooth_passes: Annotated[
+        int,
+        typer.Option(
+            "--presmooth-passes",
+            help="Passes of that smoothing, 2 = twicing (as the weights were trained).",
+        ),
+    ] = 1,
     gain: Annotated[
         float,
         typer.Option("--gain", help="Share of the networks' depth correction followed (0, 2]."),
@@ -88,6 +95,7 @@ def enhance_mesh_command(
         ensemble=ensemble,
         iterations=iterations,
         presmooth_iterations=presmooth,
+        presmooth_passes=presmooth_passes,
         correction_gain=gain,
         min_noise_ratio=min_noise_ratio,
         device=device,

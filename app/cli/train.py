@@ -35,6 +35,15 @@ def train(
     workers: Annotated[
         int, typer.Option("--workers", min=1, help="Processes making the training pairs.")
     ] = 1,
+    init: Annotated[
+        Path | None,
+        typer.Option(
+            "--init",
+            help="Fine-tune the weights in this folder (e.g. the shipped ones): the regressor "
+            "stage starts from its regressor.safetensors, the finetune stage from its "
+            "vae/ldm.safetensors (then leave out the vae and ldm stages).",
+        ),
+    ] = None,
 ) -> None:
     """Train the enhancement models from meshes (never the bunny: it is the test model)."""
     from tqdm import tqdm
@@ -52,6 +61,14 @@ def train(
     for s in wanted:
         if s not in STAGES.split(","):
             raise ValueError(f"--stages: unknown stage {s!r}")
+    if init is not None:
+        missing = [n for n in ("regressor", "vae", "ldm")
+                   if not (init / f"{n}.safetensors").exists()]
+        if missing:
+            raise ValueError(f"--init: {init} has no {', '.join(missing)}.safetensors")
+        if {"vae", "ldm"} & set(wanted):
+            raise ValueError("--init: leave out the vae and ldm stages (finetune starts from "
+                             "the folder's)")
     dev = tr.resolve_device(device)
     device = dev.type
     out.mkdir(parents=True, exist_ok=True)
@@ -107,7 +124,15 @@ def train(
         path = out / _stage_file(name)
         return path.read_bytes() if resume and path.exists() else None
 
-    vae, nets = None, None
+    vae, nets, initial = None, None, None
+    if init is not None:
+        from pipeline.enhance.inference import load_ldm, load_regressor
+
+        report["init"] = str(init)
+        initial = load_regressor((init / "regressor.safetensors").read_bytes())
+        models = load_ldm((init / "vae.safetensors").read_bytes(),
+                          (init / "ldm.safetensors").read_bytes())
+        vae, nets = models.vae.to(dev), (models.unet.to(dev), models.controlnet.to(dev))
     for stage in wanted:
         done = finished(stage)
         if done is not None:
@@ -124,7 +149,9 @@ def train(
         bar, cb = bar_for(stage)
         t_stage = time.monotonic()
         if stage == "regressor":
-            model, log = tr.train_regressor(train_pairs, cfg, seed, dev, resume_state, save, cb)
+            model, log = tr.train_regressor(
+                train_pairs, cfg, seed, dev, resume_state, save, cb, initial
+            )
             data = weights_to_bytes(model.state_dict(), asdict(cfg.regressor))
             figures = validate_regressor(model, val_pairs, cfg.validation_views, dev)
         elif stage == "vae":
@@ -152,9 +179,10 @@ def train(
             # The stage-wise weights stay beside the fine-tuned ones for comparison.
             (out / "pretrained").mkdir(exist_ok=True)
             for name in ("vae", "ldm"):
-                (out / name).with_suffix(".safetensors").replace(
-                    out / "pretrained" / f"{name}.safetensors"
-                )
+                if (out / f"{name}.safetensors").exists():  # absent when fine-tuning --init
+                    (out / f"{name}.safetensors").replace(
+                        out / "pretrained" / f"{name}.safetensors"
+                    )
             vae, nets = models.vae, (models.unet, models.controlnet)
             vae_bytes = weights_to_bytes(vae.state_dict(), asdict(cfg.vae))
             (out / "vae.safetensors").write_bytes(vae_bytes)

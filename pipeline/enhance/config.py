@@ -13,7 +13,7 @@ from pipeline.enhance.render import DepthRenders, make_views, render_depth, view
 from pipeline.enhance.update import UpdateConfig, update_vertices
 from pipeline.mesh import TriangleMesh, mean_edge_length_m
 
-METHODS = ("ldm", "regressor", "views", "taubin", "laplacian", "bilateral")
+METHODS = ("ldm", "regressor", "views", "taubin", "laplacian", "twicing", "bilateral")
 
 
 @dataclass(frozen=True)
@@ -21,7 +21,8 @@ class EnhanceConfig:
     """How to enhance a mesh."""
 
     method: str = "ldm"
-    """ldm | regressor | views (raw renders into the update) | taubin | laplacian | bilateral."""
+    """ldm | regressor | views (raw renders into the update) | taubin | laplacian | twicing |
+    bilateral."""
     views: int = 6
     """Number of depth views (the six axis views first)."""
     resolution: int = 256
@@ -41,6 +42,9 @@ class EnhanceConfig:
     """Laplacian smoothing iterations before the networks (ldm, regressor): they correct the
     smoothed mesh's renders, reading the mesh's own as a side input, and the smoothed mesh's
     vertices move. Must match the weights' training (`DataConfig.presmooth_iterations`)."""
+    presmooth_passes: int = 1
+    """Passes of that smoothing (`twicing_smooth`; 1: plain Laplacian). Must match the
+    weights' training (`DataConfig.presmooth_passes`)."""
     correction_gain: float = 0.5
     """Share of the networks' depth correction (enhanced minus base depth) the update
     follows. Chosen on the validation meshes (spot, fandisk; not the bunny) under the
@@ -91,6 +95,8 @@ def validate_config(config: EnhanceConfig) -> None:
         raise ValueError(
             f"presmooth_iterations must be >= 0, got {config.presmooth_iterations}"
         )
+    if config.presmooth_passes < 1:
+        raise ValueError(f"presmooth_passes must be >= 1, got {config.presmooth_passes}")
     if config.remesh_iterations < 0:
         raise ValueError(f"remesh_iterations must be >= 0, got {config.remesh_iterations}")
 
@@ -112,6 +118,8 @@ def enhance_mesh(
         return baselines.taubin_smooth(mesh, config.iterations)
     if config.method == "laplacian":
         return baselines.laplacian_smooth(mesh, config.iterations)
+    if config.method == "twicing":
+        return baselines.twicing_smooth(mesh, config.iterations)
     if config.method == "bilateral":
         return baselines.bilateral_denoise(mesh, config.iterations)
     if skips_enhancement(mesh, config):
@@ -122,7 +130,9 @@ def enhance_mesh(
     renders = render_depth(mesh, views, with_color=True)
     base, base_renders, update = mesh, renders, config.update
     if config.method != "views" and config.presmooth_iterations > 0:
-        base = baselines.laplacian_smooth(mesh, config.presmooth_iterations)
+        base = baselines.twicing_smooth(
+            mesh, config.presmooth_iterations, config.presmooth_passes
+        )
         base_renders = render_depth(base, views, with_color=False)
         update = replace(update, unseen_follow_moves=True)
     if progress is not None:

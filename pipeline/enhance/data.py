@@ -15,7 +15,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.enhance.baselines import laplacian_smooth
+from pipeline.enhance.baselines import twicing_smooth
 from pipeline.enhance.render import canny_edges, make_views, render_depth
 from pipeline.mesh import TriangleMesh, vertex_normals
 
@@ -53,6 +53,9 @@ class DataConfig:
     average the noise away from a single view themselves left 1.4-1.5 mm, most of it
     low-frequency: the mesh's own neighbourhoods average noise better than one view shows it,
     and the network is left the part smoothing gets wrong (shrinkage, lost features)."""
+    presmooth_passes: int = 1
+    """Passes of that smoothing (`twicing_smooth`): 1 is plain Laplacian smoothing, 2 twicing,
+    which keeps the shape that one pass shrinks (`EnhanceConfig.presmooth_passes` alike)."""
     color_probability: float = 0.5
     """Chance a pose's mesh gets synthetic colour (`synthetic_colors`), whose Canny edges the
     networks then read as at inference on a coloured mesh; the other poses have none (edges
@@ -284,7 +287,9 @@ def pose_pairs(
     views = make_views(noisy.vertices_m, forwards, config.resolution)
     r_noisy = render_depth(noisy, views, with_color=True)
     r_base = render_depth(
-        laplacian_smooth(noisy, config.presmooth_iterations), views, with_color=False
+        twicing_smooth(noisy, config.presmooth_iterations, config.presmooth_passes),
+        views,
+        with_color=False,
     )
     r_clean = render_depth(fine, views, with_color=False)
     # Every degradation below only shrinks the valid mask, so the render's edges

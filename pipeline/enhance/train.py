@@ -322,10 +322,12 @@ def train_regressor(
     resume: Checkpoint | None = None,
     on_checkpoint: Callable[[Checkpoint], None] | None = None,
     progress: Callable[[float, str], None] | None = None,
+    initial: ResidualUNet | None = None,
 ) -> tuple[ResidualUNet, list[dict[str, float]]]:
-    """Trains the residual U-Net baseline on crops of `train`."""
+    """Trains the residual U-Net baseline on crops of `train`, from `initial` (fine-tuning
+    trained weights) or from a fresh initialisation."""
     torch.manual_seed(seed)
-    model = ResidualUNet(config.regressor).to(device)
+    model = (initial or ResidualUNet(config.regressor)).to(device).train()
     sampler = CropSampler(train, config.crop, seed)
 
     def step_loss() -> torch.Tensor:

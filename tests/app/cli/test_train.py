@@ -43,3 +43,38 @@ def test_train_tiny_writes_weights_card_and_report(tmp_path):
     assert report["regressor"]["steps"] == 3 and report["vae"]["steps"] == 3
     assert "procedural-0" in report["data"]["train"]
     assert "| regressor | 3 |" in (out / "MODEL_CARD.md").read_text()
+
+
+def test_train_init_fine_tunes_given_weights_and_rejects_a_folder_without_them(tmp_path):
+    from app.cli import app
+    from pipeline.enhance.inference import weights_from_bytes
+
+    meshes = tmp_path / "meshes"
+    meshes.mkdir()
+    for name, mesh in procedural_meshes(np.random.default_rng(1), 1):
+        write_ply(meshes / f"{name}.ply", mesh)
+    common = ["--config", "tiny", "--meshes", str(meshes), "--procedural", "1"]
+    first, second = tmp_path / "first", tmp_path / "second"
+    result = CliRunner().invoke(app, ["train", "--out", str(first), *common])
+    assert result.exit_code == 0, result.output
+    result = CliRunner().invoke(app, [
+        "train", "--out", str(second), *common, "--init", str(first),
+        "--stages", "regressor,finetune",
+    ])
+    assert result.exit_code == 0, result.output
+    report = json.loads((second / "training.json").read_text())
+    assert report["init"] == str(first)
+    assert report["regressor"]["steps"] == 3 and report["finetune"]["steps"] == 3
+    # Three more steps from the first run's weights: changed, but near them (a fresh
+    # initialisation would be far).
+    for name in ("regressor", "ldm"):
+        before, _ = weights_from_bytes((first / f"{name}.safetensors").read_bytes())
+        after, _ = weights_from_bytes((second / f"{name}.safetensors").read_bytes())
+        moved = [float((after[k] - before[k]).abs().max()) for k in before]
+        assert 0 < max(moved) < 0.05, name
+
+    result = CliRunner().invoke(app, [
+        "train", "--out", str(tmp_path / "third"), *common, "--init", str(meshes),
+    ])
+    assert result.exit_code != 0
+    assert "--init" in str(result.exception)

@@ -1,7 +1,15 @@
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
-from pipeline.enhance.baselines import bilateral_denoise, laplacian_smooth, taubin_smooth
+from pipeline.enhance.baselines import (
+    bilateral_denoise,
+    laplacian_smooth,
+    taubin_smooth,
+    twicing_smooth,
+)
+from tests.pipeline.enhance.conftest import radial_rms_m, sphere
 
 
 def _radial_std(mesh) -> float:
@@ -11,8 +19,9 @@ def _radial_std(mesh) -> float:
 @pytest.mark.parametrize(
     ("smoother", "ratio"),
     # Bilateral denoising moves least per iteration (it preserves features by design).
-    [(laplacian_smooth, 0.6), (taubin_smooth, 0.6), (bilateral_denoise, 0.85)],
-    ids=["laplacian", "taubin", "bilateral"],
+    [(laplacian_smooth, 0.6), (taubin_smooth, 0.6), (twicing_smooth, 0.75),
+     (bilateral_denoise, 0.85)],
+    ids=["laplacian", "taubin", "twicing", "bilateral"],
 )
 def test_smoothers_reduce_noise_and_keep_connectivity(noisy_sphere, smoother, ratio):
     _, noisy = noisy_sphere
@@ -35,3 +44,36 @@ def test_taubin_shrinks_less_than_laplacian(unit_sphere):
     r_lap = np.linalg.norm(lap.vertices_m, axis=1).mean()
     r_tau = np.linalg.norm(tau.vertices_m, axis=1).mean()
     assert abs(r_tau - 0.5) < abs(r_lap - 0.5)
+
+
+@settings(max_examples=10, deadline=None)
+@given(iterations=st.integers(0, 25), seed=st.integers(0, 2**16))
+def test_one_twicing_pass_is_laplacian_smoothing(iterations, seed):
+    from pipeline.enhance.data import noisy_along_normals
+
+    noisy = noisy_along_normals(sphere(resolution=10), 0.02, np.random.default_rng(seed))
+    one = twicing_smooth(noisy, iterations, passes=1).vertices_m
+    assert np.allclose(one, laplacian_smooth(noisy, iterations).vertices_m, atol=1e-12)
+
+
+@settings(max_examples=8, deadline=None)
+@given(passes=st.integers(1, 3), shift=st.lists(st.floats(-5, 5), min_size=3, max_size=3))
+def test_twicing_commutes_with_translation(passes, shift):
+    mesh = sphere(resolution=10)
+    moved = mesh.with_vertices(mesh.vertices_m + np.asarray(shift))
+    a = twicing_smooth(mesh, 7, passes).vertices_m + np.asarray(shift)
+    assert np.allclose(twicing_smooth(moved, 7, passes).vertices_m, a, atol=1e-9)
+
+
+def test_twicing_keeps_the_shape_that_laplacian_smoothing_shrinks(noisy_sphere):
+    # This coarse sphere (about 6 cm edges) shrinks by 1 cm in 5 iterations, more than the
+    # noise; a second pass gives the shrinkage back and leaves a third of the noise.
+    _, noisy = noisy_sphere
+    lap, twice = laplacian_smooth(noisy, 5), twicing_smooth(noisy, 5)
+    r_lap = np.linalg.norm(lap.vertices_m, axis=1).mean()
+    r_twice = np.linalg.norm(twice.vertices_m, axis=1).mean()
+    assert abs(r_twice - 0.5) < 0.5 * abs(r_lap - 0.5)
+    assert radial_rms_m(twice) < radial_rms_m(lap)
+    assert radial_rms_m(twice) < 0.5 * radial_rms_m(noisy)
+    with pytest.raises(ValueError, match="passes"):
+        twicing_smooth(noisy, 3, passes=0)
