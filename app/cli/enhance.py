@@ -36,18 +36,18 @@ def enhance_mesh_command(
             "--presmooth",
             help="Laplacian iterations before the networks (as the weights were trained).",
         ),
-    ] = 10,
+    ] = 30,
     presmooth_passes: Annotated[
         int,
         typer.Option(
             "--presmooth-passes",
             help="Passes of that smoothing, 2 = twicing (as the weights were trained).",
         ),
-    ] = 1,
+    ] = 2,
     gain: Annotated[
         float,
         typer.Option("--gain", help="Share of the networks' depth correction followed (0, 2]."),
-    ] = 0.5,
+    ] = 0.2,
     min_noise_ratio: Annotated[
         float,
         typer.Option(

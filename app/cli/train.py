@@ -278,8 +278,7 @@ def model_card(report: dict) -> str:
         "- source meshes are remeshed isotropically by the pipeline's remesh stage (edge "
         f"{cfg['data']['edge_fraction'][0]}–{cfg['data']['edge_fraction'][1]} of the largest "
         "extent) before the noise, as the enhance stage receives them",
-        "- the networks correct the render of the noisy mesh after "
-        f"{cfg['data'].get('presmooth_iterations', 0)} Laplacian smoothing iterations (λ 0.5), "
+        f"- the networks correct the render of the noisy mesh after {_presmoothing(cfg['data'])}, "
         "reading the noisy mesh's own render beside it (its offset from the smoothed one)",
         "- stages: the regressor (the plain baseline); the VAE; U-Net + ControlNet "
         "(v-prediction); then end-to-end fine-tuning of VAE, U-Net and ControlNet through the "
@@ -314,8 +313,55 @@ def model_card(report: dict) -> str:
                     f"| {stage} | {method} | {fig['rmse_permille']:.3f} | "
                     f"{fig['edge_rmse_permille']:.3f} |"
                 )
+    lines += _continuation_lines(report.get("continued"))
     lines += ["", "Config:", "", "```json", json.dumps(cfg, indent=1), "```", ""]
     return "\n".join(lines)
+
+
+def _presmoothing(data: dict) -> str:
+    iterations, passes = data.get("presmooth_iterations", 0), data.get("presmooth_passes", 1)
+    if passes == 1:
+        return f"{iterations} Laplacian smoothing iterations (λ 0.5)"
+    return (f"{iterations} Laplacian smoothing iterations (λ 0.5) in {passes} passes "
+            "(twicing: each pass smooths what the passes before left and adds it back)")
+
+
+def _continuation_lines(continued: dict | None) -> list[str]:
+    """The card's section on a later fine-tuning of these weights (`volumesh train --init`)."""
+    if not continued:
+        return []
+    lines = [
+        "",
+        "## Fine-tuned since (these are the shipped weights)",
+        "",
+        f"- {continued['note']}",
+        f"- the networks now correct the render after {_presmoothing(continued['data'])}; "
+        "the enhance stage smooths alike (`EnhanceConfig.presmooth_iterations`, "
+        "`presmooth_passes`)",
+        f"- pairs: {continued['train_pairs']} training, {continued['validation_pairs']} "
+        "validation, same meshes and split as above",
+        "",
+        "| stage | steps | peak lr | training time (min) | final loss |",
+        "| --- | --- | --- | --- | --- |",
+    ]
+    for stage in ("regressor", "finetune"):
+        r = continued[stage]
+        lines.append(f"| {stage} | {r['steps']} | {r['lr']} | {r['train_seconds'] / 60:.1f} | "
+                     f"{round(r['final_loss'], 4)} |")
+    lines += ["", "Validation on the new pre-smoothing, before and after (as above):", "",
+              "| stage | method | RMSE before | RMSE after | edge before | edge after |",
+              "| --- | --- | --- | --- | --- | --- |"]
+    for stage in ("regressor", "finetune"):
+        before, after = continued[stage]["validation_before"], continued[stage]["validation"]
+        for method, fig in after.items():
+            if isinstance(fig, dict):
+                b = before[method]
+                lines.append(
+                    f"| {stage} | {method} | {b['rmse_permille']:.3f} | "
+                    f"{fig['rmse_permille']:.3f} | {b['edge_rmse_permille']:.3f} | "
+                    f"{fig['edge_rmse_permille']:.3f} |"
+                )
+    return lines
 
 
 def _bar(bar, fraction: float) -> None:

@@ -45,7 +45,7 @@ class DataConfig:
     """Chance a view gets holes punched in it."""
     downup_probability: float = 0.2
     """Chance a view is 4x downsampled and bilinearly upsampled."""
-    presmooth_iterations: int = 10
+    presmooth_iterations: int = 30
     """Laplacian smoothing iterations of the noisy mesh whose render is the networks' base
     depth (the noisy render rides along as a side input); 0: the noisy render is the base.
     The enhance stage must smooth alike (`EnhanceConfig.presmooth_iterations`). Laplacian
@@ -53,7 +53,7 @@ class DataConfig:
     average the noise away from a single view themselves left 1.4-1.5 mm, most of it
     low-frequency: the mesh's own neighbourhoods average noise better than one view shows it,
     and the network is left the part smoothing gets wrong (shrinkage, lost features)."""
-    presmooth_passes: int = 1
+    presmooth_passes: int = 2
     """Passes of that smoothing (`twicing_smooth`): 1 is plain Laplacian smoothing, 2 twicing,
     which keeps the shape that one pass shrinks (`EnhanceConfig.presmooth_passes` alike)."""
     color_probability: float = 0.5

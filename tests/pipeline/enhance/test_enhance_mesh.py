@@ -34,7 +34,10 @@ def test_the_update_follows_the_chosen_share_of_the_network_correction(
     from pipeline.enhance import baselines
 
     _, noisy = noisy_sphere
-    base = baselines.laplacian_smooth(noisy, 10)  # what the networks' corrections start from
+    defaults = EnhanceConfig()
+    # What the networks' corrections start from.
+    base = baselines.twicing_smooth(noisy, defaults.presmooth_iterations,
+                                    defaults.presmooth_passes)
 
     def moves(gain: float) -> np.ndarray:
         out = enhance_mesh(noisy, EnhanceConfig(method="regressor", resolution=96,

@@ -64,3 +64,26 @@ def test_unseen_vertices_follow_their_neighbours_moves_on_a_smooth_mesh():
 
     assert radial_error(follow) < 0.002
     assert radial_error(smoothed) > 5 * radial_error(follow)
+
+
+def test_following_the_change_keeps_the_mesh_where_nothing_changed_and_moves_it_by_a_change(
+    noisy_sphere,
+):
+    """Own depth as the enhanced depth: moving to it shifts vertices by the render's lookup
+    error, following its change (zero) shifts none; a uniform change of d moves the seen
+    vertices by d along the rays."""
+    _, noisy = noisy_sphere
+    views = make_views(noisy.vertices_m, view_directions(6), 128)
+    r = render_depth(noisy, views)
+    cfg = UpdateConfig(unseen_iterations=0, follow_change=True)
+    same, seen = update_vertices(noisy, r, r.depth_n, cfg)
+    assert np.array_equal(same.vertices_m, noisy.vertices_m)
+    absolute, _ = update_vertices(noisy, r, r.depth_n, UpdateConfig(unseen_iterations=0))
+    assert np.abs(absolute.vertices_m - noisy.vertices_m).max() > 1e-4
+    d = 0.001 / views.depth_range_m  # 1 mm farther from every camera
+    farther = np.where(r.valid, r.depth_n + d, r.depth_n).astype(np.float32)
+    moved, seen = update_vertices(noisy, r, farther, cfg)
+    radial = np.linalg.norm(moved.vertices_m, axis=1) - np.linalg.norm(noisy.vertices_m, axis=1)
+    # Farther along views that look at the sphere is inwards; averaged over the views that
+    # see a vertex, a little less than 1 mm.
+    assert np.median(radial[seen]) == pytest.approx(-0.001, abs=3e-4)
