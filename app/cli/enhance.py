@@ -17,7 +17,10 @@ def enhance_mesh_command(
     ],
     out: Annotated[Path, typer.Option("--out", help="Output .ply.")],
     method: Annotated[
-        str, typer.Option("--method", help="ldm|regressor|views|taubin|laplacian|twicing|bilateral")
+        str,
+        typer.Option(
+            "--method", help="ldm|regressor|views|taubin|laplacian|twicing|adaptive|bilateral"
+        ),
     ] = "ldm",
     views: Annotated[int, typer.Option("--views", help="Depth views (six axis views first).")] = 6,
     resolution: Annotated[
@@ -44,10 +47,17 @@ def enhance_mesh_command(
             help="Passes of that smoothing, 2 = twicing (as the weights were trained).",
         ),
     ] = 2,
+    adaptive: Annotated[
+        bool,
+        typer.Option(
+            "--adaptive-presmooth/--fixed-presmooth",
+            help="Choose the pre-smoothing's count per vertex (--presmooth is the pilot's).",
+        ),
+    ] = True,
     gain: Annotated[
         float,
         typer.Option("--gain", help="Share of the networks' depth correction followed (0, 2]."),
-    ] = 0.2,
+    ] = 0.1,
     min_noise_ratio: Annotated[
         float,
         typer.Option(
@@ -96,6 +106,7 @@ def enhance_mesh_command(
         iterations=iterations,
         presmooth_iterations=presmooth,
         presmooth_passes=presmooth_passes,
+        presmooth_adaptive=adaptive,
         correction_gain=gain,
         min_noise_ratio=min_noise_ratio,
         device=device,

@@ -320,6 +320,9 @@ def model_card(report: dict) -> str:
 
 def _presmoothing(data: dict) -> str:
     iterations, passes = data.get("presmooth_iterations", 0), data.get("presmooth_passes", 1)
+    if data.get("presmooth_adaptive"):
+        return (f"twicing ({passes} passes) with its count chosen per vertex among several, "
+                f"a pilot at {iterations} iterations estimating each count's bias")
     if passes == 1:
         return f"{iterations} Laplacian smoothing iterations (λ 0.5)"
     return (f"{iterations} Laplacian smoothing iterations (λ 0.5) in {passes} passes "
@@ -336,8 +339,8 @@ def _continuation_lines(continued: dict | None) -> list[str]:
         "",
         f"- {continued['note']}",
         f"- the networks now correct the render after {_presmoothing(continued['data'])}; "
-        "the enhance stage smooths alike (`EnhanceConfig.presmooth_iterations`, "
-        "`presmooth_passes`)",
+        "what the enhance stage feeds them: `EnhanceConfig.presmooth_*`",
+        *([f"- {continued['inference_note']}"] if continued.get("inference_note") else []),
         f"- pairs: {continued['train_pairs']} training, {continued['validation_pairs']} "
         "validation, same meshes and split as above",
         "",

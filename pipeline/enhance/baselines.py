@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
@@ -51,14 +53,70 @@ def twicing_smooth(
     if iterations < 0 or passes < 1:
         raise ValueError(f"iterations must be >= 0 and passes >= 1, got {iterations}, {passes}")
     m = mean_operator(mesh.faces, mesh.vertex_count)
-    x = mesh.vertices_m
+    return mesh.with_vertices(_twice(m, mesh.vertices_m, iterations, passes, lam))
+
+
+def _twice(m: sp.csr_matrix, x: NDArray, iterations: int, passes: int, lam: float) -> NDArray:
+    """`twicing_smooth` of a (V, C) per-vertex field with the mean operator `m`."""
     out = np.zeros_like(x)
     for _ in range(passes):
         r = x - out
         for _ in range(iterations):
             r = r + lam * (m @ r - r)
         out = out + r
-    return mesh.with_vertices(out)
+    return out
+
+
+@dataclass(frozen=True)
+class AdaptiveTwicingConfig:
+    """`adaptive_twicing`: which counts, and how the choice is estimated."""
+
+    iterations: tuple[int, ...] = (10, 20, 30, 40, 60, 80)
+    """Candidate iteration counts of twicing."""
+    pilot_iterations: int = 30
+    """Count of the pilot estimate on which each candidate's bias is measured."""
+    cost_smoothing: int = 20
+    """Neighbour-averaging passes over the estimated errors, so neighbours choose alike."""
+    passes: int = 2
+    """Passes of every twicing."""
+
+
+def adaptive_twicing(mesh: TriangleMesh, config: AdaptiveTwicingConfig) -> TriangleMesh:
+    """Twicing with its iteration count chosen per vertex by the least estimated squared error.
+
+    A count's bias at a vertex is estimated as how far that count moves a pilot estimate
+    (twicing at `pilot_iterations`) along the pilot's normals, where the shape bends more than
+    the filter keeps; its noise as the variance of the mesh about the pilot times the count's
+    noise gain (the mean square of white noise after the same filter). Where the surface is
+    smooth wide counts win, at ears and creases narrow ones.
+    """
+    m = mean_operator(mesh.faces, mesh.vertex_count)
+    x = mesh.vertices_m
+    pilot = _twice(m, x, config.pilot_iterations, config.passes, 0.5)
+    normals = vertex_normals(pilot, mesh.faces).astype(np.float64)
+    noise_var = float(np.mean(np.sum((x - pilot) * normals, axis=1) ** 2))
+    # A fixed probe: the result depends on the mesh alone.
+    probe = np.random.default_rng(0).normal(size=(len(x), 1))
+    results, costs = [], []
+    for k in config.iterations:
+        out = _twice(m, np.hstack([x, pilot, probe]), k, config.passes, 0.5)
+        results.append(out[:, :3])
+        bias_sq = np.sum((out[:, 3:6] - pilot) * normals, axis=1) ** 2
+        for _ in range(config.cost_smoothing):
+            bias_sq = m @ bias_sq
+        costs.append(bias_sq + noise_var * float(np.mean(out[:, 6] ** 2)))
+    choice = np.argmin(np.stack(costs), axis=0)
+    return mesh.with_vertices(np.stack(results)[choice, np.arange(len(x))])
+
+
+def presmooth(mesh: TriangleMesh, iterations: int, passes: int, adaptive: bool) -> TriangleMesh:
+    """The networks' pre-smoothing: twicing at a fixed count, or `adaptive_twicing` with
+    `iterations` as its pilot's count."""
+    if adaptive:
+        return adaptive_twicing(
+            mesh, AdaptiveTwicingConfig(pilot_iterations=iterations, passes=passes)
+        )
+    return twicing_smooth(mesh, iterations, passes)
 
 
 def taubin_smooth(

@@ -15,7 +15,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.enhance.baselines import twicing_smooth
+from pipeline.enhance.baselines import presmooth
 from pipeline.enhance.render import canny_edges, make_views, render_depth
 from pipeline.mesh import TriangleMesh, vertex_normals
 
@@ -56,6 +56,8 @@ class DataConfig:
     presmooth_passes: int = 2
     """Passes of that smoothing (`twicing_smooth`): 1 is plain Laplacian smoothing, 2 twicing,
     which keeps the shape that one pass shrinks (`EnhanceConfig.presmooth_passes` alike)."""
+    presmooth_adaptive: bool = True
+    """Its count chosen per vertex (`adaptive_twicing`), as the enhance stage does."""
     color_probability: float = 0.5
     """Chance a pose's mesh gets synthetic colour (`synthetic_colors`), whose Canny edges the
     networks then read as at inference on a coloured mesh; the other poses have none (edges
@@ -287,7 +289,8 @@ def pose_pairs(
     views = make_views(noisy.vertices_m, forwards, config.resolution)
     r_noisy = render_depth(noisy, views, with_color=True)
     r_base = render_depth(
-        twicing_smooth(noisy, config.presmooth_iterations, config.presmooth_passes),
+        presmooth(noisy, config.presmooth_iterations, config.presmooth_passes,
+                  config.presmooth_adaptive),
         views,
         with_color=False,
     )
