@@ -111,8 +111,8 @@ def adaptive_twicing(mesh: TriangleMesh, config: AdaptiveTwicingConfig) -> Trian
 
 def presmooth(mesh: TriangleMesh, iterations: int, passes: int, adaptive: bool) -> TriangleMesh:
     """The networks' pre-smoothing: twicing at a fixed count, or `adaptive_twicing` with
-    `iterations` as its pilot's count."""
-    if adaptive:
+    `iterations` as its pilot's count; 0 iterations leave the mesh as it is."""
+    if adaptive and iterations > 0:
         return adaptive_twicing(
             mesh, AdaptiveTwicingConfig(pilot_iterations=iterations, passes=passes)
         )

@@ -36,8 +36,8 @@ def test_the_update_follows_the_chosen_share_of_the_network_correction(
     _, noisy = noisy_sphere
     defaults = EnhanceConfig()
     # What the networks' corrections start from.
-    base = baselines.twicing_smooth(noisy, defaults.presmooth_iterations,
-                                    defaults.presmooth_passes)
+    base = baselines.presmooth(noisy, defaults.presmooth_iterations, defaults.presmooth_passes,
+                               defaults.presmooth_adaptive)
 
     def moves(gain: float) -> np.ndarray:
         out = enhance_mesh(noisy, EnhanceConfig(method="regressor", resolution=96,
