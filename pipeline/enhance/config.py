@@ -41,9 +41,10 @@ class EnhanceConfig:
     iterations: int = 8
     """Iterations of the classical smoothers."""
     presmooth_iterations: int = 30
-    """Laplacian smoothing iterations before the networks (ldm, regressor): they correct the
-    smoothed mesh's renders, reading the mesh's own as a side input, and the smoothed mesh's
-    vertices move. Must match the weights' training (`DataConfig.presmooth_iterations`)."""
+    """Laplacian smoothing iterations before the networks (ldm, regressor), per pass (the
+    pilot's count when adaptive): they correct the smoothed mesh's renders, reading the
+    mesh's own as a side input, and the smoothed mesh's vertices move. Should match the
+    weights' training (`DataConfig.presmooth_iterations`)."""
     presmooth_passes: int = 2
     """Passes of that smoothing (`twicing_smooth`; 1: plain Laplacian). Must match the
     weights' training (`DataConfig.presmooth_passes`)."""

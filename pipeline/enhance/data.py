@@ -46,8 +46,9 @@ class DataConfig:
     downup_probability: float = 0.2
     """Chance a view is 4x downsampled and bilinearly upsampled."""
     presmooth_iterations: int = 30
-    """Laplacian smoothing iterations of the noisy mesh whose render is the networks' base
-    depth (the noisy render rides along as a side input); 0: the noisy render is the base.
+    """Laplacian smoothing iterations (per pass; the pilot's when adaptive) of the noisy mesh
+    whose render is the networks' base depth (the noisy render rides along as a side input);
+    0: the noisy render is the base.
     The enhance stage must smooth alike (`EnhanceConfig.presmooth_iterations`). Laplacian
     smoothing at its best count leaves about 1.2 mm on the bunny, while networks that had to
     average the noise away from a single view themselves left 1.4-1.5 mm, most of it
