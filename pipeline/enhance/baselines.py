@@ -34,10 +34,7 @@ def laplacian_smooth(mesh: TriangleMesh, iterations: int, lam: float = 0.5) -> T
     if iterations < 0:
         raise ValueError(f"iterations must be >= 0, got {iterations}")
     m = mean_operator(mesh.faces, mesh.vertex_count)
-    v = mesh.vertices_m.copy()
-    for _ in range(iterations):
-        v = v + lam * (m @ v - v)
-    return mesh.with_vertices(v)
+    return mesh.with_vertices(_twice(m, mesh.vertices_m, iterations, 1, lam))
 
 
 def twicing_smooth(

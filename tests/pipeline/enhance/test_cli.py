@@ -49,3 +49,24 @@ def test_unknown_method_is_one_line_and_exit_2(tmp_path):
     )
     assert proc.returncode == 2
     assert proc.stderr.strip().startswith("volumesh: error: method")
+
+
+def test_enhance_mesh_defaults_are_the_pipelines():
+    """The CLI spells its defaults out (importing the pipeline would slow `--help`); they must
+    stay those of `EnhanceConfig`, which the shipped weights were chosen with."""
+    import inspect
+
+    from app.cli.enhance import enhance_mesh_command
+    from pipeline.enhance import EnhanceConfig
+
+    cli = {name: p.default for name, p in
+           inspect.signature(enhance_mesh_command).parameters.items()}
+    config = EnhanceConfig()
+    pairs = {"method": "method", "views": "views", "resolution": "resolution", "steps": "steps",
+             "strength": "strength", "iterations": "iterations",
+             "presmooth": "presmooth_iterations", "presmooth_passes": "presmooth_passes",
+             "adaptive": "presmooth_adaptive", "gain": "correction_gain",
+             "min_noise_ratio": "min_noise_ratio", "seed": "seed", "ensemble": "ensemble",
+             "device": "device"}
+    for option, field in pairs.items():
+        assert cli[option] == getattr(config, field), option
