@@ -264,6 +264,8 @@ def main() -> None:
     base = EnhanceConfig(views=args.views, resolution=args.resolution, weights=weights)
     # Twicing with its count chosen per vertex, the networks' pre-smoothing: no sweep.
     methods["adaptive_twicing"] = run_method(noisy, truth, EnhanceConfig(method="adaptive"))
+    # The trained selector's blend of twicings alone: the networks' pre-smoothing.
+    methods["selector"] = run_method(noisy, truth, replace(base, method="selector"))
     methods["views_raw_depth"] = run_method(noisy, truth, replace(base, method="views"))
     for label, cfg in (
         ("regressor", replace(base, method="regressor")),
@@ -322,13 +324,19 @@ def targets(methods: dict, perf: dict) -> dict:
             "reverse_no_worse_than_best_classical": r["reverse_rms_mm"] <= best["reverse_rms_mm"],
             "beats_regressor": "c2m_rms_mm" in methods.get("regressor", {})
             and r["c2m_rms_mm"] < methods["regressor"]["c2m_rms_mm"],
-            # Twicing alone (at its best count; adaptive: the networks' own pre-smoothing):
-            # what the networks add.
+            # Within 1 %: a win by less is no win.
+            "level_with_regressor": "c2m_rms_mm" in methods.get("regressor", {})
+            and abs(r["c2m_rms_mm"] / methods["regressor"]["c2m_rms_mm"] - 1.0) < 0.01,
+            # Twicing alone (at its best count; adaptive; the selector's blend, the networks'
+            # own pre-smoothing): what the networks add.
             "rms_gain_over_twicing": round(
                 1.0 - r["c2m_rms_mm"] / methods["twicing"]["c2m_rms_mm"], 4
             ),
             "rms_gain_over_adaptive_twicing": round(
                 1.0 - r["c2m_rms_mm"] / methods["adaptive_twicing"]["c2m_rms_mm"], 4
+            ),
+            "rms_gain_over_selector": round(
+                1.0 - r["c2m_rms_mm"] / methods["selector"]["c2m_rms_mm"], 4
             ),
         }
     out["best_ldm"] = ldm_best

@@ -19,7 +19,8 @@ def enhance_mesh_command(
     method: Annotated[
         str,
         typer.Option(
-            "--method", help="ldm|regressor|views|taubin|laplacian|twicing|adaptive|bilateral"
+            "--method",
+            help="ldm|regressor|views|taubin|laplacian|twicing|adaptive|selector|bilateral",
         ),
     ] = "ldm",
     views: Annotated[int, typer.Option("--views", help="Depth views (six axis views first).")] = 6,
@@ -52,6 +53,14 @@ def enhance_mesh_command(
         typer.Option(
             "--adaptive-presmooth/--fixed-presmooth",
             help="Choose the pre-smoothing's count per vertex (--presmooth is the pilot's).",
+        ),
+    ] = True,
+    learned: Annotated[
+        bool,
+        typer.Option(
+            "--learned-presmooth/--no-learned-presmooth",
+            help="The pre-smoothing is the trained selector's blend of twicings (then "
+            "--presmooth 0 still turns it off, and its passes and pilot are the weights').",
         ),
     ] = True,
     gain: Annotated[
@@ -107,6 +116,7 @@ def enhance_mesh_command(
         presmooth_iterations=presmooth,
         presmooth_passes=presmooth_passes,
         presmooth_adaptive=adaptive,
+        presmooth_learned=learned,
         correction_gain=gain,
         min_noise_ratio=min_noise_ratio,
         device=device,

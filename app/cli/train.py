@@ -1,5 +1,5 @@
-"""`volumesh train`: trains the regressor, the VAE and the U-Net + ControlNet, then fine-tunes
-the three end to end; writes weights."""
+"""`volumesh train`: trains the twicing selector (the pre-smoothing), the regressor, the VAE and
+the U-Net + ControlNet, then fine-tunes the three end to end; writes weights."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from app.cli import app
 
 VALIDATION_MESHES = ("spot", "fandisk")
 TEST_MESH_PREFIX = "stanford-bunny"
-STAGES = "regressor,vae,ldm,finetune"
+STAGES = "selector,regressor,vae,ldm,finetune"
 MESHES = Path("../shared/data/meshes")
 
 
@@ -85,17 +85,24 @@ def train(
     train_set = [(n, m) for n, m in named if n not in val_names] + procs[:-1]
     val_set = [(n, m) for n, m in named if n in val_names] + procs[-1:]
     report["data"] = {"train": [n for n, _ in train_set], "validation": [n for n, _ in val_set]}
-    t0 = time.monotonic()
-    with tqdm(total=100, desc="data", unit="%") as bar:
-        train_pairs = training_pairs(train_set, cfg.data, seed, workers, lambda f: _bar(bar, f))
-    val_pairs = training_pairs(val_set, cfg.data, seed + 1000, workers)
-    report["data"].update(
-        {
-            "train_pairs": len(train_pairs.source),
-            "validation_pairs": len(val_pairs.source),
-            "seconds": time.monotonic() - t0,
-        }
-    )
+    if "selector" in wanted:
+        wanted.remove("selector")
+        if not (resume and (out / "selector.safetensors").exists()):
+            report["selector"] = selector_stage(out, train_set, val_set, cfg.selector, seed)
+            report_path.write_text(json.dumps(report, indent=1))
+    if wanted:
+        t0 = time.monotonic()
+        with tqdm(total=100, desc="data", unit="%") as bar:
+            train_pairs = training_pairs(train_set, cfg.data, seed, workers,
+                                         lambda f: _bar(bar, f))
+        val_pairs = training_pairs(val_set, cfg.data, seed + 1000, workers)
+        report["data"].update(
+            {
+                "train_pairs": len(train_pairs.source),
+                "validation_pairs": len(val_pairs.source),
+                "seconds": time.monotonic() - t0,
+            }
+        )
 
     def checkpoint_io(stage: str):
         path = out / "checkpoints" / f"{stage}.pt"
@@ -205,6 +212,36 @@ def train(
     (out / "MODEL_CARD.md").write_text(model_card(report))
 
 
+def selector_stage(out: Path, train_set, val_set, config, seed: int) -> dict:
+    """Trains the twicing selector on noisy draws of the training meshes, writes
+    selector.safetensors; its report entry, with validation on the held-out meshes."""
+    import numpy as np
+    from tqdm import tqdm
+
+    from pipeline.enhance import selector_training as st
+    from pipeline.enhance.inference import weights_to_bytes
+
+    rng = np.random.default_rng(seed)
+    t0 = time.monotonic()
+    with tqdm(total=100, desc="selector data", unit="%") as bar:
+        examples = st.selector_examples(train_set, config, rng, progress=lambda f: _bar(bar, f))
+    data_seconds = time.monotonic() - t0
+    with tqdm(total=1000, desc="selector") as bar:
+        def cb(f: float, text: str) -> None:
+            bar.n = int(f * 1000)
+            bar.set_postfix_str(text, refresh=False)
+            bar.refresh()
+
+        model, log = st.train_selector(examples, config, seed, cb)
+    (out / "selector.safetensors").write_bytes(
+        weights_to_bytes(model.state_dict(), asdict(config.model))
+    )
+    figures = st.validate_selector(model, val_set, config, np.random.default_rng(seed + 1000))
+    typer.echo(f"selector: {json.dumps(figures)}")
+    return {**log, "data_seconds": data_seconds, "draws": len(examples),
+            "vertices": int(sum(len(e.features) for e in examples)), "validation": figures}
+
+
 POSES_PER_JOB = 8
 
 
@@ -264,28 +301,10 @@ def model_card(report: dict) -> str:
         f"- training meshes: {', '.join(report['data']['train'])}",
         f"- validation meshes (held apart by mesh): {', '.join(report['data']['validation'])}",
         "- never trained on: stanford-bunny (the benchmark's test model)",
-        f"- pairs: {report['data']['train_pairs']} training, "
-        f"{report['data']['validation_pairs']} validation, "
-        f"{cfg['data']['resolution']}² normalised depth (per view, relative to the bounding "
-        "sphere); degradations: vertex noise along normals (amplitude "
-        f"{cfg['data']['noise_fraction'][0]}–{cfg['data']['noise_fraction'][1]} of the largest "
-        "extent, or below the lower bound for a share "
-        f"{cfg['data'].get('light_noise_probability', 0)} of the poses), Azure-Kinect-like "
-        "axial noise and flying pixels, holes, 4x "
-        "down-then-up sampling; synthetic colour (albedo patches shaded by the clean normals) on "
-        f"a share {cfg['data'].get('color_probability', 0)} of the poses, its Canny edges an input",
-        f"- crops {cfg['crop']}², batch {cfg['batch']}, AdamW, warm-up + cosine schedule",
-        "- source meshes are remeshed isotropically by the pipeline's remesh stage (edge "
-        f"{cfg['data']['edge_fraction'][0]}–{cfg['data']['edge_fraction'][1]} of the largest "
-        "extent) before the noise, as the enhance stage receives them",
-        f"- the networks correct the render of the noisy mesh after {_presmoothing(cfg['data'])}, "
-        "reading the noisy mesh's own render beside it (its offset from the smoothed one)",
-        "- stages: the regressor (the plain baseline); the VAE; U-Net + ControlNet "
-        "(v-prediction); then end-to-end fine-tuning of VAE, U-Net and ControlNet through the "
-        f"unrolled {'/'.join(map(str, cfg['finetune_steps']))}-step DDIM sampler at strength "
-        f"{cfg['finetune_strength']} on the decoded depth error",
-        "- the copies shipped in `pipeline/enhance/weights` are stored as float16 and load as "
-        "float32; mesh-level figures: README, Enhancement (`benchmarks/enhance.py`)",
+        *_pairs_lines(report),
+        *_selector_lines(report),
+        "- the depth networks' copies shipped in `pipeline/enhance/weights` are stored as "
+        "float16 and load as float32; mesh-level figures: README, Enhancement (`benchmarks/enhance.py`)",
         "",
         "| stage | steps | training time (min) | final loss |",
         "| --- | --- | --- | --- |",
@@ -316,6 +335,65 @@ def model_card(report: dict) -> str:
     lines += _continuation_lines(report.get("continued"))
     lines += ["", "Config:", "", "```json", json.dumps(cfg, indent=1), "```", ""]
     return "\n".join(lines)
+
+
+def _pairs_lines(report: dict) -> list[str]:
+    """The card's lines on the depth networks' data (absent from a selector-only run)."""
+    cfg = report["config"]
+    if "train_pairs" not in report["data"]:
+        return []
+    return [
+        f"- pairs: {report['data']['train_pairs']} training, "
+        f"{report['data']['validation_pairs']} validation, "
+        f"{cfg['data']['resolution']}² normalised depth (per view, relative to the bounding "
+        "sphere); degradations: vertex noise along normals (amplitude "
+        f"{cfg['data']['noise_fraction'][0]}–{cfg['data']['noise_fraction'][1]} of the largest "
+        "extent, or below the lower bound for a share "
+        f"{cfg['data'].get('light_noise_probability', 0)} of the poses), Azure-Kinect-like "
+        "axial noise and flying pixels, holes, 4x "
+        "down-then-up sampling; synthetic colour (albedo patches shaded by the clean normals) on "
+        f"a share {cfg['data'].get('color_probability', 0)} of the poses, its Canny edges an input",
+        f"- crops {cfg['crop']}², batch {cfg['batch']}, AdamW, warm-up + cosine schedule",
+        "- source meshes are remeshed isotropically by the pipeline's remesh stage (edge "
+        f"{cfg['data']['edge_fraction'][0]}–{cfg['data']['edge_fraction'][1]} of the largest "
+        "extent) before the noise, as the enhance stage receives them",
+        f"- the networks correct the render of the noisy mesh after {_presmoothing(cfg['data'])}, "
+        "reading the noisy mesh's own render beside it (its offset from the smoothed one)",
+        "- stages: the regressor (the plain baseline); the VAE; U-Net + ControlNet "
+        "(v-prediction); then end-to-end fine-tuning of VAE, U-Net and ControlNet through the "
+        f"unrolled {'/'.join(map(str, cfg['finetune_steps']))}-step DDIM sampler at strength "
+        f"{cfg['finetune_strength']} on the decoded depth error",
+    ]
+
+
+def _selector_lines(report: dict) -> list[str]:
+    """The card's lines on the twicing selector (the networks' pre-smoothing)."""
+    if "selector" not in report:
+        return []
+    r, c = report["selector"], report["config"]["selector"]
+    lines = [
+        "- **selector** (`selector.safetensors`, `models/twicing_selector.py`): a per-vertex "
+        f"MLP ({c['model']['hidden']} wide) weighing twicings at "
+        f"{'/'.join(map(str, c['model']['iterations']))} iterations; it is the enhance stage's "
+        "pre-smoothing and `--method selector`. Trained on "
+        f"{r['draws']} noisy draws of the training meshes ({r['vertices']} vertices; edges "
+        f"{c['edge_fraction'][0]}–{c['edge_fraction'][1]} of the largest extent, uniform noise "
+        f"along normals of {c['noise_to_edge'][0]}–{c['noise_to_edge'][1]} edge lengths) for "
+        f"{r['steps']} steps ({r['train_seconds'] / 60:.1f} min, data "
+        f"{r['data_seconds'] / 60:.1f} min), loss: the blend's squared distance to the truth.",
+        *([f"  Run as `{r['command']}` on {r['device']}, training meshes "
+           f"{', '.join(r['data']['train'])}."] if "command" in r else []),
+        "",
+        "  Held-out meshes, one draw each, RMS distance to the truth in thousandths of the "
+        "extent:",
+        "",
+        "  | mesh | noisy | best single count | adaptive twicing | selector |",
+        "  | --- | --- | --- | --- | --- |",
+    ]
+    for name, f in r["validation"].items():
+        lines.append(f"  | {name} | {f['noisy']:.3f} | {f['best_count']:.3f} | "
+                     f"{f['adaptive_twicing']:.3f} | {f['selector']:.3f} |")
+    return lines + [""]
 
 
 def _presmoothing(data: dict) -> str:

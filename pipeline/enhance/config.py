@@ -14,7 +14,8 @@ from pipeline.enhance.update import UpdateConfig, update_vertices
 from pipeline.mesh import TriangleMesh, mean_edge_length_m
 
 METHODS = (
-    "ldm", "regressor", "views", "taubin", "laplacian", "twicing", "adaptive", "bilateral"
+    "ldm", "regressor", "views", "taubin", "laplacian", "twicing", "adaptive", "selector",
+    "bilateral",
 )
 
 
@@ -24,7 +25,8 @@ class EnhanceConfig:
 
     method: str = "ldm"
     """ldm | regressor | views (raw renders into the update) | taubin | laplacian | twicing |
-    adaptive (twicing, its count chosen per vertex) | bilateral."""
+    adaptive (twicing, its count chosen per vertex) | selector (a learned per-vertex blend of
+    twicings, `learned_twicing`) | bilateral."""
     views: int = 6
     """Number of depth views (the six axis views first)."""
     resolution: int = 256
@@ -51,7 +53,11 @@ class EnhanceConfig:
     presmooth_adaptive: bool = True
     """Choose the pre-smoothing's count per vertex (`adaptive_twicing`, `presmooth_iterations`
     its pilot's count). The shipped weights were fine-tuned on fixed twicing at 30 and are fed
-    this; the gain below was chosen with it."""
+    this."""
+    presmooth_learned: bool = True
+    """The pre-smoothing is the selector's blend of twicings (`learned_twicing`, the
+    `selector` weights; its candidates and pilot are fixed by those weights), in place of
+    `presmooth_adaptive`'s choice; `presmooth_iterations` 0 still turns pre-smoothing off."""
     correction_gain: float = 0.1
     """Share of the networks' depth correction (enhanced minus base depth) the update
     follows. Chosen on the validation meshes (spot, fandisk; not the bunny) under the
@@ -77,7 +83,8 @@ class EnhanceConfig:
     device: str = "auto"
     """Torch device for the networks: auto (CUDA when present), cpu or cuda."""
     weights: dict[str, bytes] | None = None
-    """safetensors bytes per model ('regressor', 'vae', 'ldm'); None: the shipped weights."""
+    """safetensors bytes per model ('regressor', 'vae', 'ldm', 'selector'); None: the shipped
+    weights."""
 
 
 def validate_config(config: EnhanceConfig) -> None:
@@ -119,6 +126,7 @@ def enhance_mesh(
     (``remesh_iterations``), the smoothers keep the connectivity. The networks return a mesh
     less noisy than ``min_noise_ratio`` as it came (`skips_enhancement`)."""
     from pipeline.enhance import baselines
+    from pipeline.enhance.inference import learned_twicing
 
     validate_config(config)
     if mesh.vertex_count == 0 or mesh.face_count == 0:
@@ -133,6 +141,8 @@ def enhance_mesh(
         return baselines.adaptive_twicing(mesh, baselines.AdaptiveTwicingConfig())
     if config.method == "bilateral":
         return baselines.bilateral_denoise(mesh, config.iterations)
+    if config.method == "selector":
+        return learned_twicing(mesh, config)
     if skips_enhancement(mesh, config):
         if progress is not None:
             progress(1.0)
@@ -141,8 +151,9 @@ def enhance_mesh(
     renders = render_depth(mesh, views, with_color=True)
     base, base_renders, update = mesh, renders, config.update
     if config.method != "views" and config.presmooth_iterations > 0:
-        base = baselines.presmooth(mesh, config.presmooth_iterations, config.presmooth_passes,
-                                   config.presmooth_adaptive)
+        base = (learned_twicing(mesh, config) if config.presmooth_learned else
+                baselines.presmooth(mesh, config.presmooth_iterations, config.presmooth_passes,
+                                    config.presmooth_adaptive))
         base_renders = render_depth(base, views, with_color=False)
         update = replace(update, unseen_follow_moves=True)
     if config.method != "views":

@@ -9,6 +9,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from pipeline.enhance.render import DepthRenders, canny_edges
+from pipeline.mesh import TriangleMesh
 
 if TYPE_CHECKING:
     import torch
@@ -74,6 +75,28 @@ def load_ldm(vae_data: bytes, ldm_data: bytes):
         {k[11:]: v for k, v in ldm_state.items() if k.startswith("controlnet.")}
     )
     return LDMModels(vae.eval(), unet.eval(), control.eval())
+
+
+def load_selector(data: bytes):
+    from pipeline.enhance.models.twicing_selector import SelectorConfig, TwicingSelector
+
+    state, cfg = weights_from_bytes(data)
+    model = TwicingSelector(SelectorConfig(**_tuples(cfg)))
+    model.load_state_dict(state)
+    return model.eval()
+
+
+def learned_twicing(mesh: TriangleMesh, config: EnhanceConfig) -> TriangleMesh:
+    """The mesh as the selector's per-vertex blend of its twicings (`twicing_blend`)."""
+    import torch
+
+    from pipeline.enhance.twicing_blend import blend, twicing_candidates
+
+    model = load_selector(_weights(config, "selector"))
+    candidates = twicing_candidates(mesh, model.config.blend)
+    with torch.no_grad():
+        weights = model(torch.from_numpy(candidates.features)).numpy()
+    return mesh.with_vertices(blend(candidates.vertices_m, weights))
 
 
 def _weights(config: EnhanceConfig, name: str) -> bytes:

@@ -26,6 +26,7 @@ from pipeline.enhance.models.unet import LatentUNet, UNetConfig
 from pipeline.enhance.models.vae import DepthVAE, VAEConfig
 from pipeline.enhance.pipelines.depth_ldm import LDMModels, latent_shape, sample_depth
 from pipeline.enhance.schedulers.ddpm import DDPMSchedule
+from pipeline.enhance.selector_training import SelectorConfig, SelectorTrainConfig
 
 Checkpoint = dict[str, Any]
 
@@ -50,6 +51,8 @@ class TrainConfig:
     """Configuration name (tiny, small, large)."""
     data: DataConfig = field(default_factory=DataConfig)
     """Training-pair generation."""
+    selector: SelectorTrainConfig = field(default_factory=SelectorTrainConfig)
+    """The twicing selector's data and budget (its own stage; no depth pairs)."""
     regressor: RegressorConfig = field(default_factory=RegressorConfig)
     """Baseline network size."""
     vae: VAEConfig = field(default_factory=VAEConfig)
@@ -96,6 +99,10 @@ CONFIGS: dict[str, TrainConfig] = {
         data=DataConfig(
             resolution=64, poses_per_mesh=1, views_per_pose=2, edge_fraction=(0.02, 0.03)
         ),
+        selector=SelectorTrainConfig(
+            model=SelectorConfig(hidden=8), draws_per_mesh=1, edge_fraction=(0.03, 0.04),
+            vertices_per_draw=2000, steps=5, batch=256,
+        ),
         regressor=RegressorConfig(channels=(8, 16)),
         vae=VAEConfig(channels=(8, 8, 16, 16)),
         unet=UNetConfig(channels=(16, 16), emb_dim=32),
@@ -126,6 +133,8 @@ CONFIGS: dict[str, TrainConfig] = {
     # they would take about a day.
     "large": TrainConfig(
         name="large",
+        selector=SelectorTrainConfig(draws_per_mesh=4, vertices_per_draw=60_000, steps=8000,
+                                     minutes=30.0),
         data=DataConfig(poses_per_mesh=32),
         crop=128,
         batch=32,
@@ -147,8 +156,11 @@ def scaled(config: TrainConfig, factor: float) -> TrainConfig:
     def sc(b: StageBudget) -> StageBudget:
         return replace(b, steps=max(1, int(b.steps * factor)), minutes=b.minutes * factor)
 
+    selector = replace(config.selector, steps=max(1, int(config.selector.steps * factor)),
+                       minutes=config.selector.minutes * factor)
     return replace(
         config,
+        selector=selector,
         regressor_budget=sc(config.regressor_budget),
         vae_budget=sc(config.vae_budget),
         ldm_budget=sc(config.ldm_budget),

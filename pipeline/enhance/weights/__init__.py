@@ -8,11 +8,12 @@ DEFAULT_FILES = {
     "regressor": "regressor.safetensors",
     "vae": "vae.safetensors",
     "ldm": "ldm.safetensors",
+    "selector": "selector.safetensors",
 }
 
 
 def shipped_bytes(name: str) -> bytes:
-    """The bytes of a shipped weights file ('regressor', 'vae' or 'ldm').
+    """The bytes of a shipped weights file ('regressor', 'vae', 'ldm' or 'selector').
 
     Raises ValueError when the package was built without it.
     """

@@ -78,3 +78,29 @@ def test_train_init_fine_tunes_given_weights_and_rejects_a_folder_without_them(t
     ])
     assert result.exit_code != 0
     assert "--init" in str(result.exception)
+
+
+def test_train_selector_stage_alone_writes_its_weights_and_card(tmp_path):
+    """The selector needs no depth pairs; its weights load and blend a mesh's twicings."""
+    from app.cli import app
+    from pipeline.enhance import EnhanceConfig, enhance_mesh
+
+    meshes = tmp_path / "meshes"
+    meshes.mkdir()
+    for name, mesh in procedural_meshes(np.random.default_rng(1), 2):
+        write_ply(meshes / f"{name}.ply", mesh)
+    out = tmp_path / "run"
+    result = CliRunner().invoke(app, [
+        "train", "--out", str(out), "--config", "tiny", "--meshes", str(meshes),
+        "--procedural", "1", "--stages", "selector",
+    ])
+    assert result.exit_code == 0, result.output
+    report = json.loads((out / "training.json").read_text())
+    assert report["selector"]["steps"] == 5 and "train_pairs" not in report["data"]
+    assert set(report["selector"]["validation"]) == set(report["data"]["validation"])
+    assert "| adaptive twicing | selector |" in (out / "MODEL_CARD.md").read_text()
+    _, mesh = procedural_meshes(np.random.default_rng(2), 1)[0]
+    weights = {"selector": (out / "selector.safetensors").read_bytes()}
+    blended = enhance_mesh(mesh, EnhanceConfig(method="selector", weights=weights))
+    assert blended.vertex_count == mesh.vertex_count
+    assert not np.allclose(blended.vertices_m, mesh.vertices_m)

@@ -65,7 +65,8 @@ def test_enhance_mesh_defaults_are_the_pipelines():
     pairs = {"method": "method", "views": "views", "resolution": "resolution", "steps": "steps",
              "strength": "strength", "iterations": "iterations",
              "presmooth": "presmooth_iterations", "presmooth_passes": "presmooth_passes",
-             "adaptive": "presmooth_adaptive", "gain": "correction_gain",
+             "adaptive": "presmooth_adaptive", "learned": "presmooth_learned",
+             "gain": "correction_gain",
              "min_noise_ratio": "min_noise_ratio", "seed": "seed", "ensemble": "ensemble",
              "device": "device"}
     for option, field in pairs.items():

@@ -4,6 +4,7 @@ that leaves better-shaped triangles on the same surface."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from pipeline.enhance import EnhanceConfig, enhance_mesh
 from pipeline.mesh import TriangleMesh
@@ -29,20 +30,22 @@ def test_the_view_update_ends_with_a_light_remesh(
     assert radial_rms_m(remeshed) < radial_rms_m(kept) * 1.1
 
 
+@pytest.mark.parametrize("learned", [True, False], ids=["selector", "adaptive"])
 def test_the_update_follows_the_chosen_share_of_the_network_correction(
-        noisy_sphere: tuple[TriangleMesh, TriangleMesh]) -> None:
+        noisy_sphere: tuple[TriangleMesh, TriangleMesh], learned: bool) -> None:
     from pipeline.enhance import baselines
 
     _, noisy = noisy_sphere
     defaults = EnhanceConfig()
-    # What the networks' corrections start from.
-    base = baselines.presmooth(noisy, defaults.presmooth_iterations, defaults.presmooth_passes,
-                               defaults.presmooth_adaptive)
+    # What the networks' corrections start from: the selector's blend, or adaptive twicing.
+    base = (enhance_mesh(noisy, EnhanceConfig(method="selector")) if learned else
+            baselines.presmooth(noisy, defaults.presmooth_iterations, defaults.presmooth_passes,
+                                defaults.presmooth_adaptive))
 
     def moves(gain: float) -> np.ndarray:
         out = enhance_mesh(noisy, EnhanceConfig(method="regressor", resolution=96,
                                                 remesh_iterations=0, correction_gain=gain,
-                                                min_noise_ratio=0.0))
+                                                min_noise_ratio=0.0, presmooth_learned=learned))
         return out.vertices_m - base.vertices_m
 
     half, full = moves(0.5), moves(1.0)
@@ -55,8 +58,6 @@ def test_the_update_follows_the_chosen_share_of_the_network_correction(
 
 
 def test_a_correction_gain_out_of_range_is_named() -> None:
-    import pytest
-
     from pipeline.enhance.config import validate_config
 
     with pytest.raises(ValueError, match="correction_gain"):
@@ -82,8 +83,6 @@ def test_the_networks_leave_a_clean_mesh_and_enhance_a_noisy_one() -> None:
 
 
 def test_a_negative_noise_gate_is_named() -> None:
-    import pytest
-
     from pipeline.enhance.config import validate_config
 
     with pytest.raises(ValueError, match="min_noise_ratio"):

@@ -1,0 +1,154 @@
+"""Training the twicing selector: noisy meshes with known truth, and a loss that is the
+blend's squared distance to the truth."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from numpy.typing import NDArray
+
+from pipeline.enhance.baselines import AdaptiveTwicingConfig, adaptive_twicing
+from pipeline.enhance.data import isotropic, noisy_along_normals, unit_extent
+from pipeline.enhance.metrics import signed_c2m
+from pipeline.enhance.models.twicing_selector import SelectorConfig, TwicingSelector
+from pipeline.enhance.twicing_blend import blend, twicing_candidates
+from pipeline.mesh import TriangleMesh
+
+
+@dataclass(frozen=True)
+class SelectorTrainConfig:
+    """Data and budget of the selector stage."""
+
+    model: SelectorConfig = SelectorConfig()
+    draws_per_mesh: int = 2
+    """Noisy copies (remesh and noise drawn afresh) of each source mesh."""
+    edge_fraction: tuple[float, float] = (0.004, 0.007)
+    """Range of the remesh's edge length, fraction of the mesh's largest extent."""
+    noise_to_edge: tuple[float, float] = (0.3, 2.5)
+    """Range of the uniform noise amplitude along normals, in edge lengths (the benchmark's
+    protocol: 10 mm on 5 mm edges, 2)."""
+    vertices_per_draw: int = 40_000
+    """Vertices of each draw kept for training (drawn at random; large meshes would dominate)."""
+    steps: int = 3000
+    minutes: float = 10.0
+    batch: int = 4096
+    lr: float = 1e-3
+
+
+@dataclass(frozen=True)
+class SelectorExample:
+    """One noisy draw of a mesh: the selector's input and each candidate's error."""
+
+    name: str
+    features: NDArray[np.float32]
+    """(V, F) `twicing_candidates` features."""
+    errors: NDArray[np.float32]
+    """(V, K) signed distance of each candidate's vertex to the truth, in noise stds."""
+    noise_std_m: float
+
+
+def selector_examples(
+    meshes: Sequence[tuple[str, TriangleMesh]],
+    config: SelectorTrainConfig,
+    rng: np.random.Generator,
+    keep_all: bool = False,
+    progress: Callable[[float], None] | None = None,
+) -> list[SelectorExample]:
+    """`draws_per_mesh` noisy draws of each mesh (scaled to unit extent and remeshed as the
+    enhance stage receives meshes); all vertices with `keep_all`, else a random subset."""
+    out = []
+    total = len(meshes) * config.draws_per_mesh
+    for name, mesh in meshes:
+        unit = unit_extent(mesh, name)
+        for _ in range(config.draws_per_mesh):
+            truth, noisy = noisy_draw(unit, config, rng)
+            cand = twicing_candidates(noisy, config.model.blend)
+            errors = np.stack([signed_c2m(v, truth) for v in cand.vertices_m], axis=1)
+            keep = np.arange(noisy.vertex_count)
+            if not keep_all and len(keep) > config.vertices_per_draw:
+                keep = rng.choice(len(keep), config.vertices_per_draw, replace=False)
+            out.append(SelectorExample(name, cand.features[keep],
+                                       (errors[keep] / cand.noise_std_m).astype(np.float32),
+                                       cand.noise_std_m))
+            if progress is not None:
+                progress(len(out) / total)
+    return out
+
+
+def noisy_draw(
+    unit: TriangleMesh, config: SelectorTrainConfig, rng: np.random.Generator
+) -> tuple[TriangleMesh, TriangleMesh]:
+    """(truth, noisy): the unit-extent mesh remeshed at a drawn edge, then noised."""
+    edge = float(rng.uniform(*config.edge_fraction))
+    truth = isotropic(unit, edge)
+    amplitude = edge * float(rng.uniform(*config.noise_to_edge))
+    return truth, noisy_along_normals(truth, amplitude, rng)
+
+
+def blend_loss(weights: torch.Tensor, errors: torch.Tensor) -> torch.Tensor:
+    """Mean squared distance to the truth of the blended vertices, (B, K) each: a blend's
+    signed distance is the weighted sum of its candidates' (the surface is flat at that scale)."""
+    return ((weights * errors).sum(dim=1) ** 2).mean()
+
+
+def train_selector(
+    examples: Sequence[SelectorExample],
+    config: SelectorTrainConfig,
+    seed: int,
+    progress: Callable[[float, str], None] | None = None,
+) -> tuple[TwicingSelector, dict]:
+    """The trained selector, and {steps, train_seconds, final_loss}."""
+    torch.manual_seed(seed)
+    features = torch.from_numpy(np.concatenate([e.features for e in examples]))
+    errors = torch.from_numpy(np.concatenate([e.errors for e in examples]))
+    model = TwicingSelector(config.model)
+    model.set_normalisation(features)
+    opt = torch.optim.Adam(model.parameters(), lr=config.lr)
+    gen = torch.Generator().manual_seed(seed)
+    t0, running, step = time.monotonic(), 0.0, 0
+    while step < config.steps and time.monotonic() - t0 < config.minutes * 60:
+        lr = config.lr * 0.5 * (1 + np.cos(np.pi * step / config.steps))
+        for group in opt.param_groups:
+            group["lr"] = lr
+        i = torch.randint(0, len(features), (config.batch,), generator=gen)
+        loss = blend_loss(model(features[i]), errors[i])
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        step += 1
+        running = 0.98 * running + 0.02 * loss.item() if step > 1 else loss.item()
+        if progress is not None and step % 20 == 0:
+            progress(step / config.steps, f"selector loss {running:.4f}")
+    model.eval()
+    return model, {"steps": step, "train_seconds": time.monotonic() - t0, "final_loss": running}
+
+
+def validate_selector(
+    model: TwicingSelector, meshes: Sequence[tuple[str, TriangleMesh]],
+    config: SelectorTrainConfig, rng: np.random.Generator,
+) -> dict[str, dict[str, float]]:
+    """Per held-out mesh (one draw each), RMS distance to the truth in permille of the extent
+    of: the noisy mesh, the best single candidate count, adaptive twicing, the selector's blend."""
+    out = {}
+    for name, mesh in meshes:
+        truth, noisy = noisy_draw(unit_extent(mesh, name), config, rng)
+        cand = twicing_candidates(noisy, config.model.blend)
+        with torch.no_grad():
+            weights = model(torch.from_numpy(cand.features)).numpy()
+        blended = blend(cand.vertices_m, weights)
+        adaptive = adaptive_twicing(noisy, AdaptiveTwicingConfig(passes=config.model.passes))
+
+        def rms(v: NDArray[np.float64], truth: TriangleMesh = truth) -> float:
+            return float(np.sqrt(np.mean(signed_c2m(v, truth) ** 2)) * 1e3)
+
+        out[name] = {
+            "noisy": rms(noisy.vertices_m),
+            "best_count": min(rms(v) for v in cand.vertices_m),
+            "adaptive_twicing": rms(adaptive.vertices_m),
+            "selector": rms(blended),
+        }
+    return out
