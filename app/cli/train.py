@@ -304,7 +304,8 @@ def model_card(report: dict) -> str:
         *_pairs_lines(report),
         *_selector_lines(report),
         "- the depth networks' copies shipped in `pipeline/enhance/weights` are stored as "
-        "float16 and load as float32; mesh-level figures: README, Enhancement (`benchmarks/enhance.py`)",
+        "float16 and load as float32; mesh-level figures: README, Enhancement "
+        "(`benchmarks/enhance.py`)",
         "",
         "| stage | steps | training time (min) | final loss |",
         "| --- | --- | --- | --- |",
