@@ -74,7 +74,7 @@ def enhance_mesh_command(
             help="The networks leave a mesh less noisy than this (noise over mean edge "
             "length) unchanged; 0 always enhances.",
         ),
-    ] = 0.07,
+    ] = 0.05,
     seed: Annotated[int, typer.Option("--seed")] = 0,
     ensemble: Annotated[
         int, typer.Option("--ensemble", help="Flipped copies of each view averaged: 1|2|4|8.")
