@@ -34,7 +34,7 @@ def laplacian_smooth(mesh: TriangleMesh, iterations: int, lam: float = 0.5) -> T
     if iterations < 0:
         raise ValueError(f"iterations must be >= 0, got {iterations}")
     m = mean_operator(mesh.faces, mesh.vertex_count)
-    return mesh.with_vertices(_twice(m, mesh.vertices_m, iterations, 1, lam))
+    return mesh.with_vertices(twice_field(m, mesh.vertices_m, iterations, 1, lam))
 
 
 def twicing_smooth(
@@ -50,10 +50,10 @@ def twicing_smooth(
     if iterations < 0 or passes < 1:
         raise ValueError(f"iterations must be >= 0 and passes >= 1, got {iterations}, {passes}")
     m = mean_operator(mesh.faces, mesh.vertex_count)
-    return mesh.with_vertices(_twice(m, mesh.vertices_m, iterations, passes, lam))
+    return mesh.with_vertices(twice_field(m, mesh.vertices_m, iterations, passes, lam))
 
 
-def _twice(m: sp.csr_matrix, x: NDArray, iterations: int, passes: int, lam: float) -> NDArray:
+def twice_field(m: sp.csr_matrix, x: NDArray, iterations: int, passes: int, lam: float) -> NDArray:
     """`twicing_smooth` of a (V, C) per-vertex field with the mean operator `m`."""
     out = np.zeros_like(x)
     for _ in range(passes):
@@ -89,14 +89,14 @@ def adaptive_twicing(mesh: TriangleMesh, config: AdaptiveTwicingConfig) -> Trian
     """
     m = mean_operator(mesh.faces, mesh.vertex_count)
     x = mesh.vertices_m
-    pilot = _twice(m, x, config.pilot_iterations, config.passes, 0.5)
+    pilot = twice_field(m, x, config.pilot_iterations, config.passes, 0.5)
     normals = vertex_normals(pilot, mesh.faces).astype(np.float64)
     noise_var = float(np.mean(np.sum((x - pilot) * normals, axis=1) ** 2))
     # A fixed probe: the result depends on the mesh alone.
     probe = np.random.default_rng(0).normal(size=(len(x), 1))
     results, costs = [], []
     for k in config.iterations:
-        out = _twice(m, np.hstack([x, pilot, probe]), k, config.passes, 0.5)
+        out = twice_field(m, np.hstack([x, pilot, probe]), k, config.passes, 0.5)
         results.append(out[:, :3])
         bias_sq = np.sum((out[:, 3:6] - pilot) * normals, axis=1) ** 2
         for _ in range(config.cost_smoothing):

@@ -55,11 +55,10 @@ def selector_examples(
     meshes: Sequence[tuple[str, TriangleMesh]],
     config: SelectorTrainConfig,
     rng: np.random.Generator,
-    keep_all: bool = False,
     progress: Callable[[float], None] | None = None,
 ) -> list[SelectorExample]:
     """`draws_per_mesh` noisy draws of each mesh (scaled to unit extent and remeshed as the
-    enhance stage receives meshes); all vertices with `keep_all`, else a random subset."""
+    enhance stage receives meshes), each cut to at most `vertices_per_draw` random vertices."""
     out = []
     total = len(meshes) * config.draws_per_mesh
     for name, mesh in meshes:
@@ -69,7 +68,7 @@ def selector_examples(
             cand = twicing_candidates(noisy, config.model.blend)
             errors = np.stack([signed_c2m(v, truth) for v in cand.vertices_m], axis=1)
             keep = np.arange(noisy.vertex_count)
-            if not keep_all and len(keep) > config.vertices_per_draw:
+            if len(keep) > config.vertices_per_draw:
                 keep = rng.choice(len(keep), config.vertices_per_draw, replace=False)
             out.append(SelectorExample(name, cand.features[keep],
                                        (errors[keep] / cand.noise_std_m).astype(np.float32),

@@ -16,7 +16,7 @@ from math import comb
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.enhance.baselines import _twice, mean_operator
+from pipeline.enhance.baselines import mean_operator, twice_field
 from pipeline.mesh import TriangleMesh, vertex_normals
 
 
@@ -63,7 +63,7 @@ def twicing_candidates(mesh: TriangleMesh, config: TwicingBlendConfig) -> Twicin
     x = mesh.vertices_m
     # A fixed probe: the result depends on the mesh alone.
     probe = np.random.default_rng(0).normal(size=(len(x), 1))
-    both = _twice(m, np.hstack([x, probe]), config.pilot_iterations, config.passes, 0.5)
+    both = twice_field(m, np.hstack([x, probe]), config.pilot_iterations, config.passes, 0.5)
     pilot = both[:, :3]
     normals = vertex_normals(pilot, mesh.faces).astype(np.float64)
     residual = np.sum((x - pilot) * normals, axis=1)
@@ -89,7 +89,7 @@ def twicing_candidates(mesh: TriangleMesh, config: TwicingBlendConfig) -> Twicin
 def _twicings(
     m, x: NDArray[np.float64], counts: tuple[int, ...], passes: int, lam: float = 0.5
 ) -> list[NDArray[np.float64]]:
-    """`_twice(m, x, k, passes, lam)` for every k in `counts`, from one run of smoothing steps.
+    """`twice_field(m, x, k, passes, lam)` for every k in `counts`, from one run of smoothing steps.
 
     With L one smoothing step, `passes` passes of k steps are I - (I - L^k)^passes, a sum of
     powers L^(j k) (binomial expansion), so passes * max(counts) steps serve every count

@@ -24,7 +24,8 @@ def test_pairs_do_not_depend_on_the_number_of_workers():
     assert one.source == two.source
 
 
-def test_train_tiny_writes_weights_card_and_report(tmp_path):
+def _train_tiny(tmp_path, stages: str):
+    """`volumesh train --config tiny` on two procedural meshes written as files: (result, out)."""
     from app.cli import app
 
     meshes = tmp_path / "meshes"
@@ -34,8 +35,13 @@ def test_train_tiny_writes_weights_card_and_report(tmp_path):
     out = tmp_path / "run"
     result = CliRunner().invoke(app, [
         "train", "--out", str(out), "--config", "tiny", "--meshes", str(meshes),
-        "--procedural", "1", "--workers", "2", "--stages", "regressor,vae",
+        "--procedural", "1", "--workers", "2", "--stages", stages,
     ])
+    return result, out
+
+
+def test_train_tiny_writes_weights_card_and_report(tmp_path):
+    result, out = _train_tiny(tmp_path, "regressor,vae")
     assert result.exit_code == 0, result.output
     assert (out / "regressor.safetensors").stat().st_size > 0
     assert (out / "vae.safetensors").stat().st_size > 0
@@ -82,18 +88,9 @@ def test_train_init_fine_tunes_given_weights_and_rejects_a_folder_without_them(t
 
 def test_train_selector_stage_alone_writes_its_weights_and_card(tmp_path):
     """The selector needs no depth pairs; its weights load and blend a mesh's twicings."""
-    from app.cli import app
     from pipeline.enhance import EnhanceConfig, enhance_mesh
 
-    meshes = tmp_path / "meshes"
-    meshes.mkdir()
-    for name, mesh in procedural_meshes(np.random.default_rng(1), 2):
-        write_ply(meshes / f"{name}.ply", mesh)
-    out = tmp_path / "run"
-    result = CliRunner().invoke(app, [
-        "train", "--out", str(out), "--config", "tiny", "--meshes", str(meshes),
-        "--procedural", "1", "--stages", "selector",
-    ])
+    result, out = _train_tiny(tmp_path, "selector")
     assert result.exit_code == 0, result.output
     report = json.loads((out / "training.json").read_text())
     assert report["selector"]["steps"] == 5 and "train_pairs" not in report["data"]
