@@ -133,8 +133,8 @@ CONFIGS: dict[str, TrainConfig] = {
     # they would take about a day.
     "large": TrainConfig(
         name="large",
-        selector=SelectorTrainConfig(draws_per_mesh=4, vertices_per_draw=60_000, steps=8000,
-                                     minutes=30.0),
+        selector=SelectorTrainConfig(model=SelectorConfig(hidden=128), draws_per_mesh=6,
+                                     vertices_per_draw=60_000, steps=12000, minutes=30.0),
         data=DataConfig(poses_per_mesh=32),
         crop=128,
         batch=32,
