@@ -71,10 +71,10 @@ class EnhanceConfig:
     (`noise_to_edge_ratio`) is below this; 0 always enhances. Their pre-smoothing removes
     detail they cannot restore, so below some noise they do harm: on spot and fandisk under
     the benchmark's protocol with the noise amplitude swept (`benchmarks/enhance_gate.py`) the
-    LDM's result matched the input's error at ratios 0.051 and 0.044 with the selector's
+    LDM's result matched the input's error at ratios 0.054 and 0.045 with the selector's
     pre-smoothing (0.072 and 0.064 with adaptive twicing, 0.11 and 0.14 with ten Laplacian
     iterations). A reconstruction of the synthetic bunny capture measures 0.01 (enhanced
-    without the gate: 0.70 -> 0.94 mm)."""
+    without the gate: 0.69 -> 0.89 mm)."""
     update: UpdateConfig = field(default_factory=UpdateConfig)
     """How vertices follow the enhanced depth."""
     remesh_iterations: int = 1
