@@ -127,7 +127,7 @@ def enhance_mesh(
     (``remesh_iterations``), the smoothers keep the connectivity. The networks return a mesh
     less noisy than ``min_noise_ratio`` as it came (`skips_enhancement`)."""
     from pipeline.enhance import baselines
-    from pipeline.enhance.inference import learned_twicing
+    from pipeline.enhance.inference import learned_twicing, model_bytes
 
     validate_config(config)
     if mesh.vertex_count == 0 or mesh.face_count == 0:
@@ -143,7 +143,7 @@ def enhance_mesh(
     if config.method == "bilateral":
         return baselines.bilateral_denoise(mesh, config.iterations)
     if config.method == "selector":
-        return learned_twicing(mesh, config)
+        return learned_twicing(mesh, model_bytes(config, "selector"))
     if skips_enhancement(mesh, config):
         if progress is not None:
             progress(1.0)
@@ -152,7 +152,8 @@ def enhance_mesh(
     renders = render_depth(mesh, views, with_color=True)
     base, base_renders, update = mesh, renders, config.update
     if config.method != "views" and config.presmooth_iterations > 0:
-        base = (learned_twicing(mesh, config) if config.presmooth_learned else
+        base = (learned_twicing(mesh, model_bytes(config, "selector"))
+                if config.presmooth_learned else
                 baselines.presmooth(mesh, config.presmooth_iterations, config.presmooth_passes,
                                     config.presmooth_adaptive))
         base_renders = render_depth(base, views, with_color=False)

@@ -58,7 +58,12 @@ class DataConfig:
     """Passes of that smoothing (`twicing_smooth`): 1 is plain Laplacian smoothing, 2 twicing,
     which keeps the shape that one pass shrinks (`EnhanceConfig.presmooth_passes` alike)."""
     presmooth_adaptive: bool = True
-    """Its count chosen per vertex (`adaptive_twicing`), as the enhance stage does."""
+    """Its count chosen per vertex (`adaptive_twicing`), as the enhance stage did before the
+    selector."""
+    presmooth_learned: bool = False
+    """The shipped selector's blend of twicings instead (`learned_twicing`), as the enhance
+    stage now does (`EnhanceConfig.presmooth_learned`). Off in the configurations the shipped
+    depth networks were trained with; the `large` recipe turns it on for the next run."""
     color_probability: float = 0.5
     """Chance a pose's mesh gets synthetic colour (`synthetic_colors`), whose Canny edges the
     networks then read as at inference on a coloured mesh; the other poses have none (edges
@@ -289,12 +294,7 @@ def pose_pairs(
     forwards = rng.normal(size=(config.views_per_pose, 3))
     views = make_views(noisy.vertices_m, forwards, config.resolution)
     r_noisy = render_depth(noisy, views, with_color=True)
-    r_base = render_depth(
-        presmooth(noisy, config.presmooth_iterations, config.presmooth_passes,
-                  config.presmooth_adaptive),
-        views,
-        with_color=False,
-    )
+    r_base = render_depth(_presmoothed(noisy, config), views, with_color=False)
     r_clean = render_depth(fine, views, with_color=False)
     # Every degradation below only shrinks the valid mask, so the render's edges
     # masked by a view's final mask are that view's edges.
@@ -321,6 +321,17 @@ def pose_pairs(
         np.stack(deg), np.stack(deg_valid), np.stack(noisy_out), r_clean.depth_n.copy(),
         np.stack(mask), np.stack(edges), (name,) * views.count,
     )
+
+
+def _presmoothed(noisy: TriangleMesh, config: DataConfig) -> TriangleMesh:
+    """The mesh whose render is the networks' base depth, smoothed as `config` says."""
+    if config.presmooth_learned and config.presmooth_iterations > 0:
+        from pipeline.enhance.inference import learned_twicing
+        from pipeline.enhance.weights import shipped_bytes
+
+        return learned_twicing(noisy, shipped_bytes("selector"))
+    return presmooth(noisy, config.presmooth_iterations, config.presmooth_passes,
+                     config.presmooth_adaptive)
 
 
 def same_surface_mask(

@@ -86,20 +86,22 @@ def load_selector(data: bytes):
     return model.eval()
 
 
-def learned_twicing(mesh: TriangleMesh, config: EnhanceConfig) -> TriangleMesh:
-    """The mesh as the selector's per-vertex blend of its twicings (`twicing_blend`)."""
+def learned_twicing(mesh: TriangleMesh, selector: bytes) -> TriangleMesh:
+    """The mesh as the selector's (safetensors bytes) per-vertex blend of its twicings
+    (`twicing_blend`)."""
     import torch
 
     from pipeline.enhance.twicing_blend import blend, twicing_candidates
 
-    model = load_selector(_weights(config, "selector"))
+    model = load_selector(selector)
     candidates = twicing_candidates(mesh, model.config.blend)
     with torch.no_grad():
         weights = model(torch.from_numpy(candidates.features)).numpy()
     return mesh.with_vertices(blend(candidates.vertices_m, weights))
 
 
-def _weights(config: EnhanceConfig, name: str) -> bytes:
+def model_bytes(config: EnhanceConfig, name: str) -> bytes:
+    """The safetensors bytes of model `name`: `config.weights`' if given, else the shipped."""
     from pipeline.enhance.weights import shipped_bytes
 
     if config.weights is not None and name in config.weights:
@@ -151,12 +153,12 @@ def run_network(
     e = None if edges_np is None else torch.from_numpy(edges_np[:, None]).to(device)
     side = side_inputs(e, torch.from_numpy(noisy.depth_n[:, None]).to(device), d, v)
     if config.method == "regressor":
-        model = load_regressor(_weights(config, "regressor")).to(device)
+        model = load_regressor(model_bytes(config, "regressor")).to(device)
 
         def net(d, v, e):
             return model(d, v, e)
     elif config.method == "ldm":
-        models = load_ldm(_weights(config, "vae"), _weights(config, "ldm"))
+        models = load_ldm(model_bytes(config, "vae"), model_bytes(config, "ldm"))
         for part in (models.vae, models.unet, models.controlnet):
             part.to(device)
 

@@ -130,12 +130,14 @@ CONFIGS: dict[str, TrainConfig] = {
     # The shipped weights' recipe, run on one H100 (2026-11-24) with `--procedural 12
     # --workers 14`: the small networks with 4x the batch and 2.7x the poses. There the
     # stages took 3.0 / 1.7 / 1.7 / 5.8 minutes (and the pairs 2 minutes); on 2 CPU cores
-    # they would take about a day.
+    # they would take about a day. Since then its pairs are pre-smoothed by the shipped
+    # selector (`presmooth_learned`), as the enhance stage now does, and its selector stage
+    # is the shipped selector's recipe (13 minutes on 2 CPU cores).
     "large": TrainConfig(
         name="large",
         selector=SelectorTrainConfig(model=SelectorConfig(hidden=128), draws_per_mesh=6,
                                      vertices_per_draw=60_000, steps=12000, minutes=30.0),
-        data=DataConfig(poses_per_mesh=32),
+        data=DataConfig(poses_per_mesh=32, presmooth_learned=True),
         crop=128,
         batch=32,
         regressor_budget=StageBudget(11583, 30.0),

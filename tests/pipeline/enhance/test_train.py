@@ -80,6 +80,12 @@ def test_presmoothed_base_is_closer_to_the_clean_depth_under_heavy_noise():
     assert rms(p.degraded_n) < 0.6 * rms(p.noisy_n)
     none = make_pairs(meshes, replace(cfg, presmooth_iterations=0), 0)
     assert np.array_equal(none.degraded_n, none.noisy_n)
+    # The selector's blend (what the enhance stage now feeds the networks): another base,
+    # as close to the clean depth; the same draws otherwise.
+    learned = make_pairs(meshes, replace(cfg, presmooth_learned=True), 0)
+    assert np.array_equal(learned.noisy_n, p.noisy_n)
+    assert not np.array_equal(learned.degraded_n, p.degraded_n)
+    assert rms(learned.degraded_n) < 0.6 * rms(learned.noisy_n)
 
 
 def test_regressor_trains_and_resumes_where_it_stopped(pairs):
