@@ -130,8 +130,8 @@ class JobCreate(BaseModel):
     remesh: StageSettings | None = Field(default=None, description=_SECTION)
     enhancement: dict[str, bool | int | float | str] | None = Field(
         default=None, description="Enhance stage settings by field name (method: ldm, "
-        "regressor, views, taubin, laplacian, twicing, adaptive, bilateral; views; resolution; "
-        "steps; strength; ensemble).")
+        "regressor, views, taubin, laplacian, twicing, adaptive, selector, bilateral; views; "
+        "resolution; steps; strength; ensemble).")
     colorize: StageSettings | None = Field(default=None, description=_SECTION)
     draco_position_bits: int | None = Field(
         default=None, ge=8, le=30, description="Draco position quantisation bits.")

@@ -117,16 +117,6 @@ def train(
 
         return state, save
 
-    def bar_for(stage: str):
-        bar = tqdm(total=1000, desc=stage)
-
-        def cb(f: float, text: str) -> None:
-            bar.n = int(f * 1000)
-            bar.set_postfix_str(text, refresh=False)
-            bar.refresh()
-
-        return bar, cb
-
     def finished(name: str) -> bytes | None:
         path = out / _stage_file(name)
         return path.read_bytes() if resume and path.exists() else None
@@ -153,7 +143,7 @@ def train(
                 vae, nets = models.vae.to(dev), (models.unet.to(dev), models.controlnet.to(dev))
             continue
         resume_state, save = checkpoint_io(stage)
-        bar, cb = bar_for(stage)
+        bar, cb = _stage_bar(stage)
         t_stage = time.monotonic()
         if stage == "regressor":
             model, log = tr.train_regressor(
@@ -223,16 +213,13 @@ def selector_stage(out: Path, train_set, val_set, config, seed: int) -> dict:
 
     rng = np.random.default_rng(seed)
     t0 = time.monotonic()
-    with tqdm(total=100, desc="selector data", unit="%") as bar:
-        examples = st.selector_examples(train_set, config, rng, progress=lambda f: _bar(bar, f))
+    with tqdm(total=100, desc="selector data", unit="%") as data_bar:
+        examples = st.selector_examples(train_set, config, rng,
+                                        progress=lambda f: _bar(data_bar, f))
     data_seconds = time.monotonic() - t0
-    with tqdm(total=1000, desc="selector") as bar:
-        def cb(f: float, text: str) -> None:
-            bar.n = int(f * 1000)
-            bar.set_postfix_str(text, refresh=False)
-            bar.refresh()
-
-        model, log = st.train_selector(examples, config, seed, cb)
+    bar, cb = _stage_bar("selector")
+    model, log = st.train_selector(examples, config, seed, cb)
+    bar.close()
     (out / "selector.safetensors").write_bytes(
         weights_to_bytes(model.state_dict(), asdict(config.model))
     )
@@ -446,6 +433,20 @@ def _continuation_lines(continued: dict | None) -> list[str]:
                     f"{fig['edge_rmse_permille']:.3f} |"
                 )
     return lines
+
+
+def _stage_bar(stage: str):
+    """A progress bar for a training stage and the (fraction, text) callback that moves it."""
+    from tqdm import tqdm
+
+    bar = tqdm(total=1000, desc=stage)
+
+    def cb(f: float, text: str) -> None:
+        bar.n = int(f * 1000)
+        bar.set_postfix_str(text, refresh=False)
+        bar.refresh()
+
+    return bar, cb
 
 
 def _bar(bar, fraction: float) -> None:

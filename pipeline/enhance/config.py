@@ -127,7 +127,7 @@ def enhance_mesh(
     (``remesh_iterations``), the smoothers keep the connectivity. The networks return a mesh
     less noisy than ``min_noise_ratio`` as it came (`skips_enhancement`)."""
     from pipeline.enhance import baselines
-    from pipeline.enhance.inference import learned_twicing, model_bytes
+    from pipeline.enhance.inference import learned_twicing, model_bytes, presmoothed
 
     validate_config(config)
     if mesh.vertex_count == 0 or mesh.face_count == 0:
@@ -152,10 +152,9 @@ def enhance_mesh(
     renders = render_depth(mesh, views, with_color=True)
     base, base_renders, update = mesh, renders, config.update
     if config.method != "views" and config.presmooth_iterations > 0:
-        base = (learned_twicing(mesh, model_bytes(config, "selector"))
-                if config.presmooth_learned else
-                baselines.presmooth(mesh, config.presmooth_iterations, config.presmooth_passes,
-                                    config.presmooth_adaptive))
+        selector = model_bytes(config, "selector") if config.presmooth_learned else None
+        base = presmoothed(mesh, config.presmooth_iterations, config.presmooth_passes,
+                           config.presmooth_adaptive, selector)
         base_renders = render_depth(base, views, with_color=False)
         update = replace(update, unseen_follow_moves=True)
     if config.method != "views":

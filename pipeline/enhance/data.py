@@ -15,7 +15,6 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.enhance.baselines import presmooth
 from pipeline.enhance.render import canny_edges, make_views, render_depth
 from pipeline.mesh import TriangleMesh, vertex_normals
 
@@ -325,13 +324,12 @@ def pose_pairs(
 
 def _presmoothed(noisy: TriangleMesh, config: DataConfig) -> TriangleMesh:
     """The mesh whose render is the networks' base depth, smoothed as `config` says."""
-    if config.presmooth_learned and config.presmooth_iterations > 0:
-        from pipeline.enhance.inference import learned_twicing
-        from pipeline.enhance.weights import shipped_bytes
+    from pipeline.enhance.inference import presmoothed
+    from pipeline.enhance.weights import shipped_bytes
 
-        return learned_twicing(noisy, shipped_bytes("selector"))
-    return presmooth(noisy, config.presmooth_iterations, config.presmooth_passes,
-                     config.presmooth_adaptive)
+    selector = shipped_bytes("selector") if config.presmooth_learned else None
+    return presmoothed(noisy, config.presmooth_iterations, config.presmooth_passes,
+                       config.presmooth_adaptive, selector)
 
 
 def same_surface_mask(

@@ -15,6 +15,7 @@ if TYPE_CHECKING:
     import torch
 
     from pipeline.enhance.config import EnhanceConfig
+    from pipeline.enhance.twicing_blend import TwicingCandidates
 
 
 def weights_to_bytes(state: dict[str, torch.Tensor], config: dict, half: bool = False) -> bytes:
@@ -87,17 +88,38 @@ def load_selector(data: bytes):
 
 
 def learned_twicing(mesh: TriangleMesh, selector: bytes) -> TriangleMesh:
-    """The mesh as the selector's (safetensors bytes) per-vertex blend of its twicings
-    (`twicing_blend`)."""
+    """The mesh as the selector's (safetensors bytes) per-vertex blend of its twicings."""
+    return apply_selector(load_selector(selector), mesh)
+
+
+def apply_selector(model, mesh: TriangleMesh) -> TriangleMesh:
+    """The mesh as a loaded `TwicingSelector`'s per-vertex blend of its twicings."""
+    from pipeline.enhance.twicing_blend import twicing_candidates
+
+    return mesh.with_vertices(selector_blend(model, twicing_candidates(mesh, model.config.blend)))
+
+
+def selector_blend(model, candidates: TwicingCandidates) -> NDArray[np.float64]:
+    """(V, 3) the candidates blended with a loaded `TwicingSelector`'s weights."""
     import torch
 
-    from pipeline.enhance.twicing_blend import blend, twicing_candidates
+    from pipeline.enhance.twicing_blend import blend
 
-    model = load_selector(selector)
-    candidates = twicing_candidates(mesh, model.config.blend)
     with torch.no_grad():
         weights = model(torch.from_numpy(candidates.features)).numpy()
-    return mesh.with_vertices(blend(candidates.vertices_m, weights))
+    return blend(candidates.vertices_m, weights)
+
+
+def presmoothed(
+    mesh: TriangleMesh, iterations: int, passes: int, adaptive: bool, selector: bytes | None
+) -> TriangleMesh:
+    """The networks' pre-smoothing, for inference and training pairs alike: the selector's
+    blend when its bytes are given, else `baselines.presmooth`; 0 iterations: the mesh."""
+    from pipeline.enhance.baselines import presmooth
+
+    if selector is not None and iterations > 0:
+        return learned_twicing(mesh, selector)
+    return presmooth(mesh, iterations, passes, adaptive)
 
 
 def model_bytes(config: EnhanceConfig, name: str) -> bytes:

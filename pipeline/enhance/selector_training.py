@@ -13,9 +13,10 @@ from numpy.typing import NDArray
 
 from pipeline.enhance.baselines import AdaptiveTwicingConfig, adaptive_twicing
 from pipeline.enhance.data import isotropic, noisy_along_normals, unit_extent
+from pipeline.enhance.inference import selector_blend
 from pipeline.enhance.metrics import signed_c2m
 from pipeline.enhance.models.twicing_selector import SelectorConfig, TwicingSelector
-from pipeline.enhance.twicing_blend import blend, twicing_candidates
+from pipeline.enhance.twicing_blend import twicing_candidates
 from pipeline.mesh import TriangleMesh
 
 
@@ -136,9 +137,7 @@ def validate_selector(
     for name, mesh in meshes:
         truth, noisy = noisy_draw(unit_extent(mesh, name), config, rng)
         cand = twicing_candidates(noisy, config.model.blend)
-        with torch.no_grad():
-            weights = model(torch.from_numpy(cand.features)).numpy()
-        blended = blend(cand.vertices_m, weights)
+        blended = selector_blend(model, cand)
         adaptive = adaptive_twicing(noisy, AdaptiveTwicingConfig(passes=config.model.passes))
 
         def rms(v: NDArray[np.float64], truth: TriangleMesh = truth) -> float:
