@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Annotated
 
@@ -35,6 +35,15 @@ def train(
     workers: Annotated[
         int, typer.Option("--workers", min=1, help="Processes making the training pairs.")
     ] = 1,
+    minutes: Annotated[
+        float | None,
+        typer.Option("--minutes", min=0.01,
+                     help="Wall-clock cap per network stage (default: the config's)."),
+    ] = None,
+    poses: Annotated[
+        int | None,
+        typer.Option("--poses", min=1, help="Poses per source mesh (default: the config's)."),
+    ] = None,
     init: Annotated[
         Path | None,
         typer.Option(
@@ -50,13 +59,18 @@ def train(
 
     from pipeline.enhance import train as tr
     from pipeline.enhance.data import procedural_meshes
-    from pipeline.enhance.inference import weights_to_bytes
+    from pipeline.enhance.inference import ldm_to_bytes, weights_to_bytes
+    from pipeline.enhance.pipelines.depth_ldm import LDMModels
     from pipeline.enhance.validate import validate_ldm, validate_regressor
     from pipeline.io.mesh_io import read_mesh
 
     if config not in tr.CONFIGS:
         raise ValueError(f"--config: {config!r} is not one of {', '.join(tr.CONFIGS)}")
     cfg = tr.scaled(tr.CONFIGS[config], budget_scale) if budget_scale != 1.0 else tr.CONFIGS[config]
+    if poses is not None:
+        cfg = replace(cfg, data=replace(cfg.data, poses_per_mesh=poses))
+    if minutes is not None:
+        cfg = tr.capped(cfg, minutes)
     wanted = [s.strip() for s in stages.split(",") if s.strip()]
     for s in wanted:
         if s not in STAGES.split(","):
@@ -121,15 +135,31 @@ def train(
         path = out / _stage_file(name)
         return path.read_bytes() if resume and path.exists() else None
 
-    vae, nets, initial = None, None, None
+    vae, nets, regressor, initial = None, None, None, None
     if init is not None:
         from pipeline.enhance.inference import load_ldm, load_regressor
 
         report["init"] = str(init)
-        initial = load_regressor((init / "regressor.safetensors").read_bytes())
+        initial = regressor = load_regressor((init / "regressor.safetensors").read_bytes())
         models = load_ldm((init / "vae.safetensors").read_bytes(),
                           (init / "ldm.safetensors").read_bytes())
         vae, nets = models.vae.to(dev), (models.unet.to(dev), models.controlnet.to(dev))
+    if finished("regressor") is not None:
+        from pipeline.enhance.inference import load_regressor
+
+        regressor = load_regressor(finished("regressor") or b"")
+    if regressor is not None:
+        regressor.to(dev)
+
+    def refines(stage: str):
+        """The regressor the LDM's stages refine (None when the config does not)."""
+        if not cfg.ldm_refines_regressor:
+            return None
+        if regressor is None:
+            raise ValueError(f"--stages: {stage} refines the regressor: run the regressor "
+                             "stage first (or give its weights in --out or --init)")
+        return regressor
+
     for stage in wanted:
         done = finished(stage)
         if done is not None:
@@ -146,32 +176,35 @@ def train(
         bar, cb = _stage_bar(stage)
         t_stage = time.monotonic()
         if stage == "regressor":
-            model, log = tr.train_regressor(
+            regressor, log = tr.train_regressor(
                 train_pairs, cfg, seed, dev, resume_state, save, cb, initial
             )
-            data = weights_to_bytes(model.state_dict(), asdict(cfg.regressor))
-            figures = validate_regressor(model, val_pairs, cfg.validation_views, dev)
+            data = weights_to_bytes(regressor.state_dict(), asdict(regressor.config))
+            figures = validate_regressor(regressor, val_pairs, cfg.validation_views, dev)
         elif stage == "vae":
-            vae, log = tr.train_vae(train_pairs, cfg, seed, dev, resume_state, save, cb)
+            vae, log = tr.train_vae(train_pairs, cfg, seed, dev, resume_state, save, cb,
+                                    refines("vae"))
             data = weights_to_bytes(vae.state_dict(), asdict(cfg.vae))
-            figures = validate_ldm(None, vae, val_pairs, cfg.validation_views, dev)
+            figures = validate_ldm(None, vae, val_pairs, cfg.validation_views, dev,
+                                   refines("vae"))
         elif stage == "ldm":
             if vae is None:
                 raise ValueError("--stages: ldm needs the vae stage (or its weights in --out)")
             unet, control, log = tr.train_ldm(
-                train_pairs, vae, cfg, seed, dev, resume_state, save, cb
+                train_pairs, vae, cfg, seed, dev, resume_state, save, cb, refines("ldm")
             )
             nets = (unet, control)
-            data = _ldm_bytes(unet, control, asdict(cfg.unet))
-            figures = validate_ldm(nets, vae, val_pairs, cfg.validation_views, dev)
+            models = LDMModels(vae, unet, control, refines("ldm"))
+            data = ldm_to_bytes(models, asdict(cfg.unet))
+            figures = validate_ldm(nets, vae, val_pairs, cfg.validation_views, dev,
+                                   models.refines)
         else:
             if vae is None or nets is None:
                 raise ValueError("--stages: finetune needs the vae and ldm stages (or their "
                                  "weights in --out)")
-            from pipeline.enhance.pipelines.depth_ldm import LDMModels
-
             models, log = tr.train_finetune(
-                train_pairs, LDMModels(vae, *nets), cfg, seed, dev, resume_state, save, cb
+                train_pairs, LDMModels(vae, *nets, refines("finetune")), cfg, seed, dev,
+                resume_state, save, cb,
             )
             # The stage-wise weights stay beside the fine-tuned ones for comparison.
             (out / "pretrained").mkdir(exist_ok=True)
@@ -183,9 +216,11 @@ def train(
             vae, nets = models.vae, (models.unet, models.controlnet)
             vae_bytes = weights_to_bytes(vae.state_dict(), asdict(cfg.vae))
             (out / "vae.safetensors").write_bytes(vae_bytes)
-            (out / "ldm.safetensors").write_bytes(_ldm_bytes(*nets, asdict(cfg.unet)))
+            (out / "ldm.safetensors").write_bytes(
+                ldm_to_bytes(models, asdict(cfg.unet)))
             data = b"end-to-end fine-tuned: see vae.safetensors and ldm.safetensors"
-            figures = validate_ldm(nets, vae, val_pairs, cfg.validation_views, dev)
+            figures = validate_ldm(nets, vae, val_pairs, cfg.validation_views, dev,
+                                   models.refines)
         bar.close()
         (out / _stage_file(stage)).write_bytes(data)
         report[stage] = {
@@ -264,14 +299,6 @@ def training_pairs(items, data, seed: int, workers: int, progress=None):
 def _stage_file(stage: str) -> str:
     """The file whose presence marks a stage finished (fine-tuning rewrites vae and ldm)."""
     return "finetune.done" if stage == "finetune" else f"{stage}.safetensors"
-
-
-def _ldm_bytes(unet, control, config: dict) -> bytes:
-    from pipeline.enhance.inference import weights_to_bytes
-
-    state = {f"unet.{k}": v for k, v in unet.state_dict().items()}
-    state.update({f"controlnet.{k}": v for k, v in control.state_dict().items()})
-    return weights_to_bytes(state, config)
 
 
 def model_card(report: dict) -> str:

@@ -59,10 +59,10 @@ class DataConfig:
     presmooth_adaptive: bool = True
     """Its count chosen per vertex (`adaptive_twicing`), as the enhance stage did before the
     selector."""
-    presmooth_learned: bool = False
+    presmooth_learned: bool = True
     """The shipped selector's blend of twicings instead (`learned_twicing`), as the enhance
-    stage now does (`EnhanceConfig.presmooth_learned`). Off in the configurations the shipped
-    depth networks were trained with; the `large` recipe turns it on for the next run."""
+    stage does (`EnhanceConfig.presmooth_learned`). The shipped regressor was trained with it
+    off (adaptive twicing); the LDM refining it was fine-tuned with it on."""
     color_probability: float = 0.5
     """Chance a pose's mesh gets synthetic colour (`synthetic_colors`), whose Canny edges the
     networks then read as at inference on a coloured mesh; the other poses have none (edges

@@ -63,19 +63,44 @@ def load_vae(data: bytes):
 
 
 def load_ldm(vae_data: bytes, ldm_data: bytes):
+    """`LDMModels` from the VAE's and the LDM's bytes; an LDM trained to refine a regressor
+    carries that regressor's weights (`ldm_to_bytes`), so the two cannot be mismatched."""
     from pipeline.enhance.models.controlnet import ControlNet
+    from pipeline.enhance.models.regressor import RegressorConfig, ResidualUNet
     from pipeline.enhance.models.unet import LatentUNet, UNetConfig
     from pipeline.enhance.pipelines.depth_ldm import LDMModels
 
     vae = load_vae(vae_data)
-    ldm_state, unet_cfg = weights_from_bytes(ldm_data)
-    cfg = UNetConfig(**_tuples(unet_cfg))
+    ldm_state, meta = weights_from_bytes(ldm_data)
+    refines_cfg = meta.pop("refines_regressor", None)
+    cfg = UNetConfig(**_tuples(meta))
     unet, control = LatentUNet(cfg), ControlNet(cfg)
-    unet.load_state_dict({k[5:]: v for k, v in ldm_state.items() if k.startswith("unet.")})
-    control.load_state_dict(
-        {k[11:]: v for k, v in ldm_state.items() if k.startswith("controlnet.")}
-    )
-    return LDMModels(vae.eval(), unet.eval(), control.eval())
+    unet.load_state_dict(_prefixed(ldm_state, "unet."))
+    control.load_state_dict(_prefixed(ldm_state, "controlnet."))
+    refines = None
+    if refines_cfg is not None:
+        refines = ResidualUNet(RegressorConfig(**_tuples(refines_cfg)))
+        refines.load_state_dict(_prefixed(ldm_state, "refines."))
+        refines.eval()
+    return LDMModels(vae.eval(), unet.eval(), control.eval(), refines)
+
+
+def ldm_to_bytes(models, unet_config: dict, half: bool = False) -> bytes:
+    """safetensors bytes of an `LDMModels`' U-Net and ControlNet, and of the regressor it
+    refines; the VAE is stored apart."""
+    from dataclasses import asdict
+
+    parts = {"unet": models.unet, "controlnet": models.controlnet}
+    meta = dict(unet_config)
+    if models.refines is not None:
+        parts["refines"] = models.refines
+        meta["refines_regressor"] = asdict(models.refines.config)
+    state = {f"{name}.{k}": v for name, part in parts.items() for k, v in part.state_dict().items()}
+    return weights_to_bytes(state, meta, half)
+
+
+def _prefixed(state: dict, prefix: str) -> dict:
+    return {k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)}
 
 
 def load_selector(data: bytes):

@@ -24,7 +24,12 @@ from pipeline.enhance.models.controlnet import ControlNet
 from pipeline.enhance.models.regressor import RegressorConfig, ResidualUNet
 from pipeline.enhance.models.unet import LatentUNet, UNetConfig
 from pipeline.enhance.models.vae import DepthVAE, VAEConfig
-from pipeline.enhance.pipelines.depth_ldm import LDMModels, latent_shape, sample_depth
+from pipeline.enhance.pipelines.depth_ldm import (
+    LDMModels,
+    guide_depth,
+    latent_shape,
+    sample_depth,
+)
 from pipeline.enhance.schedulers.ddpm import DDPMSchedule
 from pipeline.enhance.selector_training import SelectorConfig, SelectorTrainConfig
 
@@ -91,6 +96,10 @@ class TrainConfig:
     so capacity is not spent on the pure-noise end of the schedule."""
     validation_views: int = 24
     """Validation images scored at the end of each stage."""
+    ldm_refines_regressor: bool = True
+    """The VAE, LDM and fine-tuning stages train on the regressor's estimate in place of the
+    base depth (`LDMModels.refines`), so the LDM learns what the regressor leaves; their
+    stages then need a trained regressor."""
 
 
 CONFIGS: dict[str, TrainConfig] = {
@@ -137,7 +146,7 @@ CONFIGS: dict[str, TrainConfig] = {
         name="large",
         selector=SelectorTrainConfig(model=SelectorConfig(hidden=128), draws_per_mesh=6,
                                      vertices_per_draw=60_000, steps=12000, minutes=30.0),
-        data=DataConfig(poses_per_mesh=32, presmooth_learned=True),
+        data=DataConfig(poses_per_mesh=32),
         crop=128,
         batch=32,
         regressor_budget=StageBudget(11583, 30.0),
@@ -167,6 +176,16 @@ def scaled(config: TrainConfig, factor: float) -> TrainConfig:
         vae_budget=sc(config.vae_budget),
         ldm_budget=sc(config.ldm_budget),
         finetune_budget=sc(config.finetune_budget),
+    )
+
+
+def capped(config: TrainConfig, minutes: float) -> TrainConfig:
+    """The same configuration with every network stage's wall-clock limit set to `minutes`
+    (steps unchanged, so the learning-rate schedule is the step budget's)."""
+    return replace(
+        config,
+        **{f"{s}_budget": replace(getattr(config, f"{s}_budget"), minutes=minutes)
+           for s in ("regressor", "vae", "ldm", "finetune")},
     )
 
 
@@ -371,9 +390,11 @@ def train_vae(
     resume: Checkpoint | None = None,
     on_checkpoint: Callable[[Checkpoint], None] | None = None,
     progress: Callable[[float, str], None] | None = None,
+    refines: ResidualUNet | None = None,
 ) -> tuple[DepthVAE, list[dict[str, float]]]:
     """Trains the KL autoencoder: clean depth -> latent -> clean depth, the decoder guided by
-    the degraded depth; then sets its latent scale so latents have unit variance."""
+    the degraded depth (the `refines` regressor's estimate from it, when given); then sets its
+    latent scale so latents have unit variance."""
     torch.manual_seed(seed + 1)
     vae = DepthVAE(config.vae).to(device)
     sampler = CropSampler(train, config.crop, seed + 1)
@@ -383,6 +404,7 @@ def train_vae(
 
     def step_loss() -> torch.Tensor:
         deg, deg_valid, clean, mask, side = sampler.batch(config.batch, device)
+        deg = guide_depth(refines, deg, deg_valid, side)
         posterior = vae.encode(clean, deg_valid, deg)
         z = posterior.sample()
         recon = vae.decode(z, deg, deg_valid, side)
@@ -405,7 +427,8 @@ def train_vae(
     )
     vae.eval()
     with torch.no_grad():
-        deg, deg_valid, clean, _, _ = sampler.batch(max(config.batch, 8), device)
+        deg, deg_valid, clean, _, side = sampler.batch(max(config.batch, 8), device)
+        deg = guide_depth(refines, deg, deg_valid, side)
         z = vae.encode(clean, deg_valid, deg).mean
         vae.latent_scale.fill_(1.0 / float(z.std().clamp_min(1e-6)))
     return vae, log
@@ -420,9 +443,11 @@ def train_ldm(
     resume: Checkpoint | None = None,
     on_checkpoint: Callable[[Checkpoint], None] | None = None,
     progress: Callable[[float, str], None] | None = None,
+    refines: ResidualUNet | None = None,
 ) -> tuple[LatentUNet, ControlNet, list[dict[str, float]]]:
     """Trains U-Net and ControlNet together (no pretrained U-Net exists to freeze) with the
-    v-prediction objective on latents of clean depth, conditioned on the degraded depth."""
+    v-prediction objective on latents of clean depth, conditioned on the degraded depth (the
+    `refines` regressor's estimate from it, when given)."""
     torch.manual_seed(seed + 2)
     unet = LatentUNet(config.unet).to(device)
     control = ControlNet(config.unet).to(device)
@@ -434,6 +459,7 @@ def train_ldm(
 
     def step_loss() -> torch.Tensor:
         deg, deg_valid, clean, _, side = sampler.batch(config.batch, device)
+        deg = guide_depth(refines, deg, deg_valid, side)
         with torch.no_grad():
             z0 = vae.encode(clean, deg_valid, deg).mean * vae.latent_scale
         t_max = min(config.ldm_max_timestep, schedule.num_train_steps)

@@ -15,6 +15,7 @@ from numpy.typing import NDArray
 from pipeline.enhance.data import DepthPairs, same_surface_mask
 from pipeline.enhance.metrics import depth_edge_band
 from pipeline.enhance.models.common import side_inputs
+from pipeline.enhance.models.regressor import ResidualUNet
 from pipeline.enhance.models.vae import DepthVAE, padded
 
 
@@ -86,34 +87,44 @@ def validate_regressor(model, pairs: DepthPairs, count: int, device: torch.devic
 
 
 def validate_ldm(
-    nets: tuple | None, vae: DepthVAE, pairs: DepthPairs, count: int, device: torch.device
+    nets: tuple | None,
+    vae: DepthVAE,
+    pairs: DepthPairs,
+    count: int,
+    device: torch.device,
+    refines: ResidualUNet | None = None,
 ) -> dict:
     """VAE figures (clean latent decoded: its ceiling; degraded latent decoded), and with
-    `nets` = (unet, controlnet) the sampled LDM at 1, 4 and 10 steps."""
-    from pipeline.enhance.pipelines.depth_ldm import LDMModels, enhance_depth_ldm
+    `nets` = (unet, controlnet) the sampled LDM at 1, 4 and 10 steps. With a `refines`
+    regressor the degraded depth is its estimate (`guide_depth`), scored as `regressor`."""
+    from pipeline.enhance.pipelines.depth_ldm import LDMModels, enhance_depth_ldm, guide_depth
 
     idx = _subset(pairs, count)
     vae.eval()
     out: dict = {"views": len(idx), **_inputs(pairs, idx)}
+    if refines is not None:
+        out["regressor"] = depth_scores(_batched(refines, pairs, idx, device), pairs, idx)
 
-    def decode_of(source: NDArray[np.float32]):
+    def decode_of(name: str):
         def fn(d: torch.Tensor, v: torch.Tensor, e: torch.Tensor) -> torch.Tensor:
-            # The latent of `source` (clean or degraded), decoded with the degraded guide.
+            # The latent of the clean or the degraded depth, decoded with the degraded guide.
             sel = _current.pop(0)
-            x = torch.from_numpy(source[sel][:, None]).to(device)
+            g = guide_depth(refines, d, v, e)
+            clean = torch.from_numpy(pairs.clean_n[sel][:, None]).to(device)
+            x = g if name == "degraded" else clean
             xp, vp, (h, w) = padded(x, v)
-            dp, _, _ = padded(d, v)
+            gp, _, _ = padded(g, v)
             ep, _, _ = padded(e, v)
-            return vae.decode(vae.encode(xp, vp, dp).mean, dp, vp, ep)[..., :h, :w]
+            return vae.decode(vae.encode(xp, vp, gp).mean, gp, vp, ep)[..., :h, :w]
 
         return fn
 
-    for name, source in (("vae_clean_latent", pairs.clean_n), ("vae_degraded_latent", None)):
+    for name in ("clean", "degraded"):
         _current = [idx[s : s + 6] for s in range(0, len(idx), 6)]
-        src = pairs.degraded_n if source is None else source
-        out[name] = depth_scores(_batched(decode_of(src), pairs, idx, device), pairs, idx)
+        pred = _batched(decode_of(name), pairs, idx, device)
+        out[f"vae_{name}_latent"] = depth_scores(pred, pairs, idx)
     if nets is not None:
-        models = LDMModels(vae, nets[0].eval(), nets[1].eval())
+        models = LDMModels(vae, nets[0].eval(), nets[1].eval(), refines)
         runs = [(1, 0.5), (4, 0.5), (10, 0.5), (4, 0.3), (4, 0.7)]
         for steps, strength in runs:
 

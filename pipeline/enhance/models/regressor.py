@@ -30,6 +30,7 @@ class ResidualUNet(nn.Module):
 
     def __init__(self, config: RegressorConfig) -> None:
         super().__init__()
+        self.config = config
         ch = config.channels
         self.conv_in = nn.Conv2d(FEATURE_CHANNELS, ch[0], 3, padding=1)
         self.down = nn.ModuleList()

@@ -1,5 +1,11 @@
 """Latent-diffusion depth enhancement: encode the degraded depth, noise it part-way (strength),
-denoise with a few DDIM steps under ControlNet guidance, decode guided by the degraded depth."""
+denoise with a few DDIM steps under ControlNet guidance, decode guided by the degraded depth.
+
+With a `refines` regressor the degraded depth is first replaced by the regressor's estimate, and
+the diffusion model learns what is left (the split of CorrDiff, Mardani et al. 2023: a
+regression for the mean, the generative model for the residual). A decoder guided by the base
+depth alone has to relearn everything the regressor knows before it can add to it.
+"""
 
 from __future__ import annotations
 
@@ -8,6 +14,7 @@ from dataclasses import dataclass
 import torch
 
 from pipeline.enhance.models.controlnet import ControlNet
+from pipeline.enhance.models.regressor import ResidualUNet
 from pipeline.enhance.models.unet import LatentUNet
 from pipeline.enhance.models.vae import LATENT_CHANNELS, DepthVAE, padded
 from pipeline.enhance.schedulers import ddim
@@ -24,6 +31,9 @@ class LDMModels:
     """Latent denoiser (v-prediction)."""
     controlnet: ControlNet
     """Conditioning branch on the base depth and its side inputs (colour edges, noisy detail)."""
+    refines: ResidualUNet | None = None
+    """A trained, frozen regressor whose estimate stands in for the base depth everywhere
+    below (encoding, hint, decoder guide); None: the LDM corrects the base depth itself."""
 
 
 def sample_depth(
@@ -41,6 +51,7 @@ def sample_depth(
     `noise` is the (B, 4, H/8, W/8) start noise for the padded size (`latent_shape`).
     """
     schedule = DDPMSchedule()
+    depth_n = guide_depth(models.refines, depth_n, valid, side)
     d, v, (h, w) = padded(depth_n, valid)
     side_p = None if side is None else padded(side, valid)[0]
     scale = models.vae.latent_scale
@@ -56,6 +67,21 @@ def sample_depth(
         z = ddim.step(z, v_pred, int(t), t_prev, schedule)
     out = models.vae.decode(z / scale, d, v, side_p)
     return out[..., :h, :w]
+
+
+def guide_depth(
+    refines: ResidualUNet | None,
+    depth_n: torch.Tensor,
+    valid: torch.Tensor,
+    side: torch.Tensor | None,
+) -> torch.Tensor:
+    """(B, 1, H, W) the depth the LDM corrects: the regressor's estimate from the base depth,
+    or the base depth itself. The side inputs stay those of the base (the noisy render's offset
+    from it), so both networks read the same evidence."""
+    if refines is None:
+        return depth_n
+    with torch.no_grad():
+        return refines(depth_n, valid, side)
 
 
 def latent_shape(depth_n: torch.Tensor) -> tuple[int, int, int, int]:

@@ -4,6 +4,7 @@ worker processes."""
 import json
 
 import numpy as np
+import torch
 from typer.testing import CliRunner
 
 from app.cli.train import training_pairs
@@ -49,6 +50,26 @@ def test_train_tiny_writes_weights_card_and_report(tmp_path):
     assert report["regressor"]["steps"] == 3 and report["vae"]["steps"] == 3
     assert "procedural-0" in report["data"]["train"]
     assert "| regressor | 3 |" in (out / "MODEL_CARD.md").read_text()
+    # The VAE is trained on the regressor's estimate and scored beside it.
+    assert "regressor" in report["vae"]["validation"]
+
+
+def test_the_ldm_a_run_writes_carries_the_regressor_it_refines(tmp_path):
+    from pipeline.enhance.inference import weights_from_bytes
+
+    result, out = _train_tiny(tmp_path, "regressor,vae,ldm")
+    assert result.exit_code == 0, result.output
+    regressor, _ = weights_from_bytes((out / "regressor.safetensors").read_bytes())
+    ldm, meta = weights_from_bytes((out / "ldm.safetensors").read_bytes())
+    assert meta["refines_regressor"] == {"channels": [8, 16]}
+    for key, value in regressor.items():
+        assert torch.equal(ldm[f"refines.{key}"], value), key
+
+
+def test_ldm_stages_without_a_regressor_are_refused_by_name(tmp_path):
+    result, _ = _train_tiny(tmp_path, "vae")
+    assert result.exit_code != 0
+    assert "refines the regressor" in str(result.exception)
 
 
 def test_train_init_fine_tunes_given_weights_and_rejects_a_folder_without_them(tmp_path):

@@ -65,8 +65,8 @@ def test_light_noise_poses_degrade_less():
 
 
 def test_presmoothed_base_is_closer_to_the_clean_depth_under_heavy_noise():
-    """The networks' base (the render of the Laplacian-smoothed noisy mesh) has averaged most
-    noise away; the noisy render rides along, and with no pre-smoothing it is the base."""
+    """The networks' base (the render of the smoothed noisy mesh) has averaged most noise
+    away; the noisy render rides along, and with no pre-smoothing it is the base."""
     meshes = procedural_meshes(np.random.default_rng(2), 1)
     cfg = DataConfig(resolution=64, poses_per_mesh=1, views_per_pose=3, edge_fraction=(0.02, 0.02),
                      noise_fraction=(0.02, 0.02), light_noise_probability=0.0,
@@ -80,12 +80,12 @@ def test_presmoothed_base_is_closer_to_the_clean_depth_under_heavy_noise():
     assert rms(p.degraded_n) < 0.6 * rms(p.noisy_n)
     none = make_pairs(meshes, replace(cfg, presmooth_iterations=0), 0)
     assert np.array_equal(none.degraded_n, none.noisy_n)
-    # The selector's blend (what the enhance stage now feeds the networks): another base,
-    # as close to the clean depth; the same draws otherwise.
-    learned = make_pairs(meshes, replace(cfg, presmooth_learned=True), 0)
-    assert np.array_equal(learned.noisy_n, p.noisy_n)
-    assert not np.array_equal(learned.degraded_n, p.degraded_n)
-    assert rms(learned.degraded_n) < 0.6 * rms(learned.noisy_n)
+    # Adaptive twicing in place of the selector's blend (the default, what the enhance stage
+    # feeds the networks): another base, as close to the clean depth; the same draws.
+    adaptive = make_pairs(meshes, replace(cfg, presmooth_learned=False), 0)
+    assert np.array_equal(adaptive.noisy_n, p.noisy_n)
+    assert not np.array_equal(adaptive.degraded_n, p.degraded_n)
+    assert rms(adaptive.degraded_n) < 0.6 * rms(adaptive.noisy_n)
 
 
 def test_regressor_trains_and_resumes_where_it_stopped(pairs):
@@ -123,22 +123,20 @@ def test_weights_round_trip_with_config():
 
 
 def test_tiny_models_enhance_a_mesh_deterministically(pairs):
+    from pipeline.enhance.inference import ldm_to_bytes
+
     dev = torch.device("cpu")
     reg, _ = train_regressor(pairs, TINY, 0, dev)
-    vae, _ = train_vae(pairs, TINY, 0, dev)
-    unet, control, _ = train_ldm(pairs, vae, TINY, 0, dev)
-    models, _ = train_finetune(pairs, LDMModels(vae, unet, control), TINY, 0, dev)
-    vae, unet, control = models.vae, models.unet, models.controlnet
-    ldm_state = {f"unet.{k}": v for k, v in unet.state_dict().items()}
-    ldm_state.update({f"controlnet.{k}": v for k, v in control.state_dict().items()})
+    vae, _ = train_vae(pairs, TINY, 0, dev, refines=reg)
+    unet, control, _ = train_ldm(pairs, vae, TINY, 0, dev, refines=reg)
+    models, _ = train_finetune(pairs, LDMModels(vae, unet, control, reg), TINY, 0, dev)
     weights = {
         "regressor": weights_to_bytes(
             reg.state_dict(), {"channels": list(TINY.regressor.channels)}
         ),
-        "vae": weights_to_bytes(vae.state_dict(), {"channels": list(TINY.vae.channels)}),
-        "ldm": weights_to_bytes(
-            ldm_state, {"channels": list(TINY.unet.channels), "emb_dim": TINY.unet.emb_dim}
-        ),
+        "vae": weights_to_bytes(models.vae.state_dict(), {"channels": list(TINY.vae.channels)}),
+        "ldm": ldm_to_bytes(models, {"channels": list(TINY.unet.channels),
+                                     "emb_dim": TINY.unet.emb_dim}),
     }
     mesh = sphere(0.5, 12)
     # No light remesh: the checks below compare vertex by vertex; no pre-smoothing, whose
@@ -273,3 +271,66 @@ def test_surface_mask_drops_pixels_where_either_input_sees_another_surface():
     mask = same_surface_mask(far)
     assert not mask[0, 0, 0] and not mask[0, 1, 1] and mask[0, 2, 2]
     assert mask.sum() == pairs.loss_mask.sum() - 2
+
+
+def _zero_correction_ldm(pairs, refines=None) -> LDMModels:
+    """An untrained LDM whose decoder adds nothing to its guide."""
+    from pipeline.enhance.models.controlnet import ControlNet
+    from pipeline.enhance.models.unet import LatentUNet
+    from pipeline.enhance.models.vae import DepthVAE
+
+    torch.manual_seed(0)
+    vae = DepthVAE(TINY.vae)
+    torch.nn.init.zeros_(vae.conv_out.weight)
+    torch.nn.init.zeros_(vae.conv_out.bias)
+    return LDMModels(vae.eval(), LatentUNet(TINY.unet).eval(), ControlNet(TINY.unet).eval(),
+                     refines)
+
+
+def test_a_refining_ldm_corrects_the_regressors_estimate_not_the_base(pairs):
+    """With `refines`, everything the LDM adds is added to the regressor's output: an LDM
+    that adds nothing returns exactly the regressor's estimate (and the base without)."""
+    from pipeline.enhance.models.common import side_inputs
+
+    reg, _ = train_regressor(pairs, TINY, 0, torch.device("cpu"))
+    d = torch.from_numpy(pairs.degraded_n[:2, None])
+    v = torch.from_numpy(pairs.degraded_valid[:2, None])
+    e = torch.from_numpy(pairs.edges[:2, None])
+    side = side_inputs(e, torch.from_numpy(pairs.noisy_n[:2, None]), d, v)
+    with torch.no_grad():
+        estimate = reg(d, v, side)
+    assert not torch.allclose(estimate, d)
+    alone = enhance_depth_ldm(_zero_correction_ldm(pairs), d, v, 2, 0.5, 0, side)
+    refining = enhance_depth_ldm(_zero_correction_ldm(pairs, reg), d, v, 2, 0.5, 0, side)
+    assert torch.equal(alone, d)
+    assert torch.equal(refining, estimate)
+
+
+def test_finetuning_a_refining_ldm_leaves_its_regressor_alone(pairs):
+    dev = torch.device("cpu")
+    reg, _ = train_regressor(pairs, TINY, 0, dev)
+    before = {k: v.clone() for k, v in reg.state_dict().items()}
+    cfg = replace(TINY, finetune_budget=StageBudget(3, 1.0, 1e-3))
+    models, _ = train_finetune(pairs, _zero_correction_ldm(pairs, reg), cfg, 0, dev)
+    assert all(torch.equal(before[k], v) for k, v in models.refines.state_dict().items())
+    assert models.vae.conv_out.weight.abs().max() > 0  # the LDM itself did train
+
+
+def test_a_refining_ldm_round_trips_through_its_bytes_with_its_regressor(pairs):
+    from pipeline.enhance.inference import ldm_to_bytes, load_ldm
+
+    dev = torch.device("cpu")
+    reg, _ = train_regressor(pairs, TINY, 0, dev)
+    vae, _ = train_vae(pairs, TINY, 0, dev, refines=reg)
+    unet, control, _ = train_ldm(pairs, vae, TINY, 0, dev, refines=reg)
+    models = LDMModels(vae, unet, control, reg)
+    unet_cfg = {"channels": list(TINY.unet.channels), "emb_dim": TINY.unet.emb_dim}
+    vae_bytes = weights_to_bytes(vae.state_dict(), {"channels": list(TINY.vae.channels)})
+    again = load_ldm(vae_bytes, ldm_to_bytes(models, unet_cfg))
+    assert again.refines is not None and again.refines.config == reg.config
+    d = torch.from_numpy(pairs.degraded_n[:2, None])
+    v = torch.from_numpy(pairs.degraded_valid[:2, None])
+    assert torch.equal(enhance_depth_ldm(models, d, v, 2, 0.5, 3),
+                       enhance_depth_ldm(again, d, v, 2, 0.5, 3))
+    plain = load_ldm(vae_bytes, ldm_to_bytes(replace(models, refines=None), unet_cfg))
+    assert plain.refines is None
