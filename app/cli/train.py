@@ -347,8 +347,10 @@ def model_card(report: dict) -> str:
                     f"| {stage} | {method} | {fig['rmse_permille']:.3f} | "
                     f"{fig['edge_rmse_permille']:.3f} |"
                 )
-    lines += _continuation_lines(report.get("continued"))
-    lines += ["", "Config:", "", "```json", json.dumps(cfg, indent=1), "```", ""]
+    lines += _continuation_lines(report.get("continued"), "refined" in report)
+    lines += _refined_lines(report.get("refined"))
+    lines += ["", "Config (of the first run above):", "", "```json", json.dumps(cfg, indent=1),
+              "```", ""]
     return "\n".join(lines)
 
 
@@ -424,13 +426,16 @@ def _presmoothing(data: dict) -> str:
             "(twicing: each pass smooths what the passes before left and adds it back)")
 
 
-def _continuation_lines(continued: dict | None) -> list[str]:
-    """The card's section on a later fine-tuning of these weights (`volumesh train --init`)."""
+def _continuation_lines(continued: dict | None, refined: bool = False) -> list[str]:
+    """The card's section on a later fine-tuning of these weights (`volumesh train --init`);
+    `refined`: the LDM was trained again after it (`_refined_lines`)."""
     if not continued:
         return []
+    shipped = ("the shipped regressor; the vae and ldm were trained again, next section"
+               if refined else "these are the shipped weights")
     lines = [
         "",
-        "## Fine-tuned since (these are the shipped weights)",
+        f"## Fine-tuned since ({shipped})",
         "",
         f"- {continued['note']}",
         f"- the networks now correct the render after {_presmoothing(continued['data'])}; "
@@ -460,6 +465,41 @@ def _continuation_lines(continued: dict | None) -> list[str]:
                     f"{fig['edge_rmse_permille']:.3f} |"
                 )
     return lines
+
+
+def _refined_lines(refined: dict | None) -> list[str]:
+    """The card's section on re-training the LDM to refine the regressor (`LDMModels.refines`):
+    the report of a `--init ... --stages finetune` run, with its command."""
+    if not refined:
+        return []
+    f, data = refined["finetune"], refined["data"]
+    v = f["validation"]
+    lines = [
+        "",
+        "## The LDM refines the regressor (these are the shipped vae and ldm)",
+        "",
+        "- `ldm.safetensors` carries the regressor it refines (its `refines.*` tensors are the "
+        "shipped `regressor.safetensors`, its config in the metadata): the LDM encodes, denoises "
+        "and decodes around the regressor's estimate instead of the pre-smoothed base "
+        "(`LDMModels.refines`, `TrainConfig.ldm_refines_regressor`; the split of CorrDiff, "
+        "Mardani et al. 2023). The regressor stays frozen; the VAE, U-Net and ControlNet learn "
+        "what it leaves.",
+        f"- run as `{refined['command']}` on {refined['device']}, from the weights above: "
+        f"{f['steps']} end-to-end steps in {f['train_seconds'] / 60:.1f} minutes, final loss "
+        f"{f['final_loss']:.4f}; pairs in {data['seconds'] / 60:.1f} minutes",
+        f"- pairs: {data['train_pairs']} training, {data['validation_pairs']} validation, same "
+        f"meshes and split as above, the base depth after {_presmoothing(refined['config_data'])}"
+        ", as the enhance stage now feeds the networks",
+        "",
+        f"Validation, {v['views']} held-apart renders (as above; `regressor`: the embedded "
+        "regressor alone):",
+        "",
+        "| method | RMSE | edge RMSE |",
+        "| --- | --- | --- |",
+    ]
+    lines += [f"| {k} | {x['rmse_permille']:.3f} | {x['edge_rmse_permille']:.3f} |"
+              for k, x in v.items() if isinstance(x, dict)]
+    return lines + ["", refined["note"]]
 
 
 def _stage_bar(stage: str):

@@ -61,20 +61,21 @@ class EnhanceConfig:
     correction_gain: float = 0.1
     """Share of the networks' depth correction (enhanced minus base depth) the update
     follows. Chosen on the validation meshes (spot, fandisk; not the bunny) under the
-    benchmark's protocol (`benchmarks/enhance_gain.py`), for the LDM on the adaptive
-    pre-smoothing: C2M RMS at gains 0 / 0.1 / 0.2 / 0.35 / 0.5 was 0.812 / 0.814 / 0.821 /
-    0.845 / 0.883 mm on spot and 0.876 / 0.872 / 0.873 / 0.884 / 0.906 on fandisk (0 is the
-    pre-smoothed mesh itself): the networks add next to nothing to it. On vertex noise their
-    corrections are over-confident (least-squares gain well below 1 at depth level)."""
+    benchmark's protocol (`benchmarks/enhance_gain.py`), for the LDM refining the regressor
+    on the selector's pre-smoothing: C2M RMS at gains 0.05 / 0.1 / 0.2 / 0.35 was 0.776 /
+    0.775 / 0.778 / 0.788 mm on spot and 0.729 / 0.727 / 0.727 / 0.733 on fandisk (the
+    pre-smoothed mesh itself: 0.777 and 0.732): the networks add little to it. On vertex
+    noise their corrections are over-confident (least-squares gain well below 1 at depth
+    level)."""
     min_noise_ratio: float = 0.05
     """The networks (ldm, regressor) leave a mesh unchanged whose estimated noise
     (`noise_to_edge_ratio`) is below this; 0 always enhances. Their pre-smoothing removes
     detail they cannot restore, so below some noise they do harm: on spot and fandisk under
     the benchmark's protocol with the noise amplitude swept (`benchmarks/enhance_gate.py`) the
-    LDM's result matched the input's error at ratios 0.054 and 0.045 with the selector's
+    LDM's result matched the input's error at ratios 0.053 and 0.044 with the selector's
     pre-smoothing (0.072 and 0.064 with adaptive twicing, 0.11 and 0.14 with ten Laplacian
     iterations). A reconstruction of the synthetic bunny capture measures 0.01 (enhanced
-    without the gate: 0.69 -> 0.89 mm)."""
+    without the gate: 0.70 -> 0.90 mm)."""
     update: UpdateConfig = field(default_factory=UpdateConfig)
     """How vertices follow the enhanced depth."""
     remesh_iterations: int = 1

@@ -122,3 +122,16 @@ def test_train_selector_stage_alone_writes_its_weights_and_card(tmp_path):
     blended = enhance_mesh(mesh, EnhanceConfig(method="selector", weights=weights))
     assert blended.vertex_count == mesh.vertex_count
     assert not np.allclose(blended.vertices_m, mesh.vertices_m)
+
+
+def test_the_shipped_model_card_is_the_one_its_training_report_renders():
+    """The card is written from training.json (`model_card`), so the two cannot drift."""
+    from importlib import resources
+
+    from app.cli.train import model_card
+
+    weights = resources.files("pipeline.enhance.weights")
+    report = json.loads(weights.joinpath("training.json").read_text())
+    card = weights.joinpath("MODEL_CARD.md").read_text()
+    assert card == model_card(report)
+    assert "## The LDM refines the regressor (these are the shipped vae and ldm)" in card
