@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 import torch
+import torch.nn.functional as nnf
 from torch import nn
 
 from pipeline.enhance.data import DataConfig, DepthPairs, same_surface_mask
@@ -96,6 +97,16 @@ class TrainConfig:
     so capacity is not spent on the pure-noise end of the schedule."""
     validation_views: int = 24
     """Validation images scored at the end of each stage."""
+    loss_slope_power: int = 0
+    """The regressor's and the end-to-end stage's depth loss weighs each pixel by cos^p of the
+    clean surface's slant to the view (`slope_weights`). The mesh update moves a vertex along
+    each view's ray by its depth change, weighted by cos², so a depth error e moves the
+    surface by e·cos along its normal: p = 4 is the error the mesh sees. Plain depth MSE
+    (p = 0) is dominated by grazing pixels, where the networks learned their depth-level gains
+    but which hardly move the mesh: on vertex noise alone, in the update's weighting, the
+    shipped regressor and LDM were worse than the pre-smoothed base they correct (0.608 and
+    0.588 against 0.583 per mille) while their plain depth error was lower (1.10 and 1.08
+    against 1.12)."""
     ldm_refines_regressor: bool = True
     """The VAE, LDM and fine-tuning stages train on the regressor's estimate in place of the
     base depth (`LDMModels.refines`), so the LDM learns what the regressor leaves; their
@@ -204,6 +215,8 @@ class CropSampler:
             pairs.noisy_n,
         ]).astype(np.float32))
         self.crop = min(crop, pairs.degraded_n.shape[-1])
+        self.resolution = pairs.degraded_n.shape[-1]
+        """Side of the full images in pixels (crops keep their pixel size)."""
         self.rng = np.random.default_rng(seed)
 
     def batch(self, size: int, device: torch.device) -> tuple[torch.Tensor, ...]:
@@ -246,11 +259,24 @@ class CropSampler:
         return torch.cat(found)[:size].unbind(1)
 
 
-def masked_mse(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """Mean squared error over the mask, in units of RESIDUAL_SCALE."""
-    m = mask.to(pred.dtype)
+def masked_mse(
+    pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, weight: torch.Tensor | None = None
+) -> torch.Tensor:
+    """Mean squared error over the mask (weighted by `weight` when given), in units of
+    RESIDUAL_SCALE."""
+    m = mask.to(pred.dtype) if weight is None else mask.to(pred.dtype) * weight
     err = (pred - target) / RESIDUAL_SCALE
-    return (err**2 * m).sum() / m.sum().clamp_min(1.0)
+    return (err**2 * m).sum() / m.sum().clamp_min(1e-6)
+
+
+def slope_weights(clean_n: torch.Tensor, resolution: int, power: int) -> torch.Tensor:
+    """(B, 1, H, W) cos^power of the slant of the (B, 1, H, W) clean surface to the view:
+    cos = 1 / sqrt(1 + |grad z|²) with the slope from central differences of the orthographic
+    render, whose normalised depth unit is the image side (`resolution` pixels)."""
+    c = nnf.pad(clean_n, (1, 1, 1, 1), mode="replicate")
+    gx = (c[..., 1:-1, 2:] - c[..., 1:-1, :-2]) * (0.5 * resolution)
+    gy = (c[..., 2:, 1:-1] - c[..., :-2, 1:-1]) * (0.5 * resolution)
+    return (1.0 + gx**2 + gy**2) ** (-0.5 * power)
 
 
 def resolve_device(name: str) -> torch.device:
@@ -365,7 +391,8 @@ def train_regressor(
 
     def step_loss() -> torch.Tensor:
         deg, deg_valid, clean, mask, side = sampler.batch(config.batch, device)
-        return masked_mse(model(deg, deg_valid, side), clean, mask)
+        weight = slope_weights(clean, sampler.resolution, config.loss_slope_power)
+        return masked_mse(model(deg, deg_valid, side), clean, mask, weight)
 
     log = _fit(
         "regressor",
@@ -513,7 +540,8 @@ def train_finetune(
         steps = int(sampler.rng.choice(config.finetune_steps))
         noise = torch.randn(latent_shape(deg), device=device)
         pred = sample_depth(models, deg, deg_valid, steps, config.finetune_strength, noise, side)
-        return masked_mse(pred, clean, mask)
+        weight = slope_weights(clean, sampler.resolution, config.loss_slope_power)
+        return masked_mse(pred, clean, mask, weight)
 
     trainable = [p for part in parts.values() for p in part.parameters()]
     log = _fit(

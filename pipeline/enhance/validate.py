@@ -17,6 +17,9 @@ from pipeline.enhance.metrics import depth_edge_band
 from pipeline.enhance.models.common import side_inputs
 from pipeline.enhance.models.regressor import ResidualUNet
 from pipeline.enhance.models.vae import DepthVAE, padded
+from pipeline.enhance.update import UpdateConfig
+
+MIN_COS = UpdateConfig().min_cos
 
 
 def _subset(pairs: DepthPairs, count: int) -> NDArray[np.int64]:
@@ -25,8 +28,14 @@ def _subset(pairs: DepthPairs, count: int) -> NDArray[np.int64]:
 
 
 def depth_scores(pred: NDArray, pairs: DepthPairs, idx: NDArray[np.int64]) -> dict[str, float]:
-    """RMSE and 3-pixel edge-band RMSE (thousandths of depth range) of `pred` (n, H, W)."""
-    sq, band_sq, n_px, n_band = 0.0, 0.0, 0, 0
+    """RMSE, 3-pixel edge-band RMSE and normal RMSE (thousandths of depth range) of `pred`
+    (n, H, W). The normal RMSE is the error as the mesh update sees it: each pixel's depth
+    error times the cos of the clean surface's slant (its move along the normal), weighted by
+    cos² as the update weighs views, over pixels slanted less than its visibility limit."""
+    from pipeline.enhance.train import slope_weights
+
+    sq, band_sq, n_px, n_band, normal_sq, normal_w = 0.0, 0.0, 0, 0, 0.0, 0.0
+    res = pairs.clean_n.shape[-1]
     for j, i in enumerate(idx):
         mask = same_surface_mask(pairs, i)
         err = (pred[j] - pairs.clean_n[i])[mask]
@@ -36,9 +45,15 @@ def depth_scores(pred: NDArray, pairs: DepthPairs, idx: NDArray[np.int64]) -> di
         e2 = (pred[j] - pairs.clean_n[i])[band]
         band_sq += float(np.sum(e2.astype(np.float64) ** 2))
         n_band += e2.size
+        cos2 = slope_weights(torch.from_numpy(pairs.clean_n[i][None, None]), res, 2)[0, 0]
+        cos2_np = cos2.numpy().astype(np.float64)
+        seen = mask & (cos2_np > MIN_COS**2)
+        normal_sq += float(np.sum((pred[j] - pairs.clean_n[i])[seen] ** 2 * cos2_np[seen] ** 2))
+        normal_w += float(np.sum(cos2_np[seen]))
     return {
         "rmse_permille": 1e3 * float(np.sqrt(sq / max(n_px, 1))),
         "edge_rmse_permille": 1e3 * float(np.sqrt(band_sq / max(n_band, 1))),
+        "normal_rmse_permille": 1e3 * float(np.sqrt(normal_sq / max(normal_w, 1e-12))),
     }
 
 

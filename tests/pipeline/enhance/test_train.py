@@ -5,6 +5,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from pipeline.enhance import EnhanceConfig, enhance_mesh
 from pipeline.enhance.data import (
@@ -334,3 +336,34 @@ def test_a_refining_ldm_round_trips_through_its_bytes_with_its_regressor(pairs):
                        enhance_depth_ldm(again, d, v, 2, 0.5, 3))
     plain = load_ldm(vae_bytes, ldm_to_bytes(replace(models, refines=None), unet_cfg))
     assert plain.refines is None
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    a=st.floats(-3.0, 3.0), b=st.floats(-3.0, 3.0), offset=st.floats(-1.0, 1.0),
+    power=st.sampled_from([0, 2, 4]),
+)
+def test_slope_weights_are_the_cos_of_a_planes_slant(a, b, offset, power):
+    """An orthographic render of the plane z = a x + b y (x, y, z in image sides, the unit of
+    normalised depth): every pixel off the border weighs (1 + a² + b²)^(-power/2), the
+    power of the cos between its normal and the view."""
+    from pipeline.enhance.train import slope_weights
+
+    res = 32
+    t = torch.arange(res, dtype=torch.float64) / res
+    plane = offset + a * t[None, :] + b * t[:, None]
+    w = slope_weights(plane[None, None], res, power)[0, 0, 1:-1, 1:-1]
+    expected = (1.0 + a * a + b * b) ** (-power / 2)
+    assert torch.allclose(w, torch.full_like(w, expected), rtol=1e-9)
+
+
+def test_depth_scores_normal_error_discounts_slanted_pixels(pairs):
+    """A uniform depth offset is the plain RMSE everywhere; along the normals, as the mesh
+    update sees it, slanted pixels count for less, so it is smaller but of its size."""
+    from pipeline.enhance.validate import depth_scores
+
+    idx = np.arange(len(pairs.source))
+    scores = depth_scores(pairs.clean_n[idx] + 0.002, pairs, idx)
+    assert scores["rmse_permille"] == pytest.approx(2.0, rel=1e-4)
+    assert 0.5 < scores["normal_rmse_permille"] < 2.0
+    assert depth_scores(pairs.clean_n[idx], pairs, idx)["normal_rmse_permille"] == 0.0
