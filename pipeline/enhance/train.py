@@ -99,14 +99,15 @@ class TrainConfig:
     """Validation images scored at the end of each stage."""
     loss_slope_power: int = 0
     """The regressor's and the end-to-end stage's depth loss weighs each pixel by cos^p of the
-    clean surface's slant to the view (`slope_weights`). The mesh update moves a vertex along
-    each view's ray by its depth change, weighted by cos², so a depth error e moves the
-    surface by e·cos along its normal: p = 4 is the error the mesh sees. Plain depth MSE
-    (p = 0) is dominated by grazing pixels, where the networks learned their depth-level gains
-    but which hardly move the mesh: on vertex noise alone, in the update's weighting, the
-    shipped regressor and LDM were worse than the pre-smoothed base they correct (0.608 and
-    0.588 against 0.583 per mille) while their plain depth error was lower (1.10 and 1.08
-    against 1.12)."""
+    clean surface's slant to the view (`slope_weights`); 0: plain depth MSE. The mesh update
+    moves a vertex along each view's ray by its depth change, weighted by cos², so a depth
+    error e moves the surface by e·cos along its normal and p = 4 is the error the mesh sees
+    (`depth_scores`' normal RMSE). Plain MSE is dominated by grazing pixels, and on vertex
+    noise alone, in the update's weighting, the shipped regressor and LDM are worse than the
+    pre-smoothed base they correct (0.608 and 0.588 against 0.583 per mille) while their
+    plain depth error is lower (1.10 and 1.08 against 1.12). But p = 4 did not help: the LDM
+    fine-tuned with it (the shipped LDM's recipe, same pairs and budget) gave 0.592 there and
+    spot 0.777 / fandisk 0.729 mm on meshes, against 0.775 / 0.727 with p = 0. So it is 0."""
     ldm_refines_regressor: bool = True
     """The VAE, LDM and fine-tuning stages train on the regressor's estimate in place of the
     base depth (`LDMModels.refines`), so the LDM learns what the regressor leaves; their
