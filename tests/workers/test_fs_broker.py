@@ -39,3 +39,36 @@ def _race(scheme: str, folder: Path, count: int = 400) -> list[int]:
 
 def test_every_message_arrives_whole(tmp_path: Path) -> None:
     assert sorted(_race(SCHEME, tmp_path)) == list(range(400))
+
+
+def _bind(folder: str, queue: str, start_at: float) -> None:
+    options = {"data_folder_in": folder, "data_folder_out": folder, "control_folder": folder}
+    with Connection(f"{SCHEME}://localhost//", transport_options=options) as conn:
+        channel = conn.default_channel
+        while time.time() < start_at:  # all processes bind at once
+            pass
+        channel._queue_bind("celery", queue, "", queue)
+
+
+def test_workers_binding_at_once_all_land_in_the_exchange_table(tmp_path: Path) -> None:
+    """kombu's own bind creates a missing table before it locks it; a worker starting beside
+    another read it empty and died (a JSON error at start-up)."""
+    from concurrent.futures import ProcessPoolExecutor
+    from multiprocessing import get_context
+
+    from workers.fs_broker import Channel
+
+    queues = [f"q{n}" for n in range(6)]
+    for round_ in range(3):
+        folder = tmp_path / str(round_)
+        folder.mkdir()
+        start_at = time.time() + 2.0
+        with ProcessPoolExecutor(len(queues), mp_context=get_context("spawn")) as pool:
+            for done in [pool.submit(_bind, str(folder), q, start_at) for q in queues]:
+                done.result()
+        options = {"data_folder_in": str(folder), "data_folder_out": str(folder),
+                   "control_folder": str(folder)}
+        with Connection(f"{SCHEME}://localhost//", transport_options=options) as conn:
+            channel = conn.default_channel
+            assert isinstance(channel, Channel)
+            assert sorted(q.queue for q in channel.get_table("celery")) == queues
