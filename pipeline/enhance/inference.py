@@ -206,8 +206,9 @@ def run_network(
             return model(d, v, e)
     elif config.method == "ldm":
         models = load_ldm(model_bytes(config, "vae"), model_bytes(config, "ldm"))
-        for part in (models.vae, models.unet, models.controlnet):
-            part.to(device)
+        for part in (models.vae, models.unet, models.controlnet, models.refines):
+            if part is not None:
+                part.to(device)
 
         def net(d, v, e):
             return enhance_depth_ldm(models, d, v, config.steps, config.strength, config.seed, e)
