@@ -144,10 +144,11 @@ def train(
         models = load_ldm((init / "vae.safetensors").read_bytes(),
                           (init / "ldm.safetensors").read_bytes())
         vae, nets = models.vae.to(dev), (models.unet.to(dev), models.controlnet.to(dev))
-    if finished("regressor") is not None:
+    trained_regressor = finished("regressor")
+    if trained_regressor is not None:
         from pipeline.enhance.inference import load_regressor
 
-        regressor = load_regressor(finished("regressor") or b"")
+        regressor = load_regressor(trained_regressor)
     if regressor is not None:
         regressor.to(dev)
 

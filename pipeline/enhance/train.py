@@ -270,6 +270,12 @@ def masked_mse(
     return (err**2 * m).sum() / m.sum().clamp_min(1e-6)
 
 
+def loss_weights(clean_n: torch.Tensor, resolution: int, power: int) -> torch.Tensor | None:
+    """The depth loss's pixel weights (`TrainConfig.loss_slope_power`); None (plain MSE, no
+    work on the training step) for power 0."""
+    return None if power == 0 else slope_weights(clean_n, resolution, power)
+
+
 def slope_weights(clean_n: torch.Tensor, resolution: int, power: int) -> torch.Tensor:
     """(B, 1, H, W) cos^power of the slant of the (B, 1, H, W) clean surface to the view:
     cos = 1 / sqrt(1 + |grad z|²) with the slope from central differences of the orthographic
@@ -392,7 +398,7 @@ def train_regressor(
 
     def step_loss() -> torch.Tensor:
         deg, deg_valid, clean, mask, side = sampler.batch(config.batch, device)
-        weight = slope_weights(clean, sampler.resolution, config.loss_slope_power)
+        weight = loss_weights(clean, sampler.resolution, config.loss_slope_power)
         return masked_mse(model(deg, deg_valid, side), clean, mask, weight)
 
     log = _fit(
@@ -541,7 +547,7 @@ def train_finetune(
         steps = int(sampler.rng.choice(config.finetune_steps))
         noise = torch.randn(latent_shape(deg), device=device)
         pred = sample_depth(models, deg, deg_valid, steps, config.finetune_strength, noise, side)
-        weight = slope_weights(clean, sampler.resolution, config.loss_slope_power)
+        weight = loss_weights(clean, sampler.resolution, config.loss_slope_power)
         return masked_mse(pred, clean, mask, weight)
 
     trainable = [p for part in parts.values() for p in part.parameters()]
