@@ -8,6 +8,10 @@ and reported at their best (lowest C2M RMS). Depth-level figures come from held-
 renders (meshes never trained on). Targets are checked and reported as they come out.
 
     .venv/bin/python benchmarks/enhance.py [--weights DIR] [--quick] > enhance.json
+
+The timing alone, per stage, in this process (on a GPU: `--device cuda`):
+
+    .venv/bin/python benchmarks/enhance.py --perf-child [--device cuda] [--remesh-iterations 0]
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from pipeline.enhance import EnhanceConfig, enhance_mesh  # noqa: E402
+from pipeline.enhance.config import STAGE_PROGRESS  # noqa: E402
 from pipeline.enhance.data import noisy_along_normals  # noqa: E402
 from pipeline.enhance.metrics import c2m_summary, normal_error_deg  # noqa: E402
 from pipeline.mesh import TriangleMesh  # noqa: E402
@@ -197,22 +202,26 @@ def network_predictions(weights: dict | None, pairs, idx, ldm_steps: tuple[int, 
 
 
 def perf_child(args) -> None:
-    """Runs one LDM enhancement in this fresh process and prints seconds and peak RSS."""
+    """Runs one LDM enhancement in this fresh process and prints seconds, the seconds of each
+    stage (`STAGE_PROGRESS`) and peak RSS."""
     truth, noisy = bunny_protocol(Path(args.meshes), args.seed, name=args.mesh)
     weights = _weights(args.weights)
     cfg = EnhanceConfig(
         method="ldm", views=args.views, resolution=args.resolution, steps=args.steps,
-        weights=weights,
+        remesh_iterations=args.remesh_iterations, device=args.device, weights=weights,
     )
     enhance_mesh(noisy, replace(cfg, resolution=32))  # warm-up: imports, first-call costs
     base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    t = time.perf_counter()
-    enhance_mesh(noisy, cfg)
-    seconds = time.perf_counter() - t
+    stage_of = {share: stage for stage, share in STAGE_PROGRESS.items()}
+    ends = [("start", time.perf_counter())]
+    enhance_mesh(noisy, cfg, lambda share: ends.append((stage_of[share], time.perf_counter())))
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    print(
-        json.dumps({"seconds": seconds, "peak_rss_gb": peak / 2**20, "rss_before_gb": base / 2**20})
-    )
+    stages = {name: t - before for (_, before), (name, t) in zip(ends, ends[1:], strict=False)}
+    print(json.dumps({
+        "seconds": ends[-1][1] - ends[0][1], "stage_seconds": stages, "device": args.device,
+        "remesh_iterations": args.remesh_iterations, "peak_rss_gb": peak / 2**20,
+        "rss_before_gb": base / 2**20,
+    }))
 
 
 def _weights(folder: str | None) -> dict | None:
@@ -231,7 +240,11 @@ def main() -> None:
     ap.add_argument("--resolution", type=int, default=256)
     ap.add_argument("--depth-views", type=int, default=24)
     ap.add_argument("--quick", action="store_true", help="coarser sweeps, no depth-level part")
-    ap.add_argument("--perf-child", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--perf-child", action="store_true",
+                    help="only time one LDM enhancement (with its stages) in this process")
+    ap.add_argument("--device", default="auto", help="torch device of the timing: auto, cpu, cuda")
+    ap.add_argument("--remesh-iterations", type=int, default=1,
+                    help="light remesh rounds of the timing (0: none)")
     ap.add_argument("--steps", type=int, default=4, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.perf_child:

@@ -112,16 +112,19 @@ def load_selector(data: bytes):
     return model.eval()
 
 
-def learned_twicing(mesh: TriangleMesh, selector: bytes) -> TriangleMesh:
-    """The mesh as the selector's (safetensors bytes) per-vertex blend of its twicings."""
-    return apply_selector(load_selector(selector), mesh)
+def learned_twicing(mesh: TriangleMesh, selector: bytes, device: str | None = None
+                    ) -> TriangleMesh:
+    """The mesh as the selector's (safetensors bytes) per-vertex blend of its twicings, the
+    smoothing steps on `device` (`twicing_blend.field_ops`; None: scipy)."""
+    return apply_selector(load_selector(selector), mesh, device)
 
 
-def apply_selector(model, mesh: TriangleMesh) -> TriangleMesh:
+def apply_selector(model, mesh: TriangleMesh, device: str | None = None) -> TriangleMesh:
     """The mesh as a loaded `TwicingSelector`'s per-vertex blend of its twicings."""
     from pipeline.enhance.twicing_blend import twicing_candidates
 
-    return mesh.with_vertices(selector_blend(model, twicing_candidates(mesh, model.config.blend)))
+    candidates = twicing_candidates(mesh, model.config.blend, device)
+    return mesh.with_vertices(selector_blend(model, candidates))
 
 
 def selector_blend(model, candidates: TwicingCandidates) -> NDArray[np.float64]:
@@ -136,14 +139,16 @@ def selector_blend(model, candidates: TwicingCandidates) -> NDArray[np.float64]:
 
 
 def presmoothed(
-    mesh: TriangleMesh, iterations: int, passes: int, adaptive: bool, selector: bytes | None
+    mesh: TriangleMesh, iterations: int, passes: int, adaptive: bool, selector: bytes | None,
+    device: str | None = None,
 ) -> TriangleMesh:
     """The networks' pre-smoothing, for inference and training pairs alike: the selector's
-    blend when its bytes are given, else `baselines.presmooth`; 0 iterations: the mesh."""
+    blend when its bytes are given (its smoothing on `device`), else `baselines.presmooth`;
+    0 iterations: the mesh."""
     from pipeline.enhance.baselines import presmooth
 
     if selector is not None and iterations > 0:
-        return learned_twicing(mesh, selector)
+        return learned_twicing(mesh, selector, device)
     return presmooth(mesh, iterations, passes, adaptive)
 
 

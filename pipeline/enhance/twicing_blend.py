@@ -5,18 +5,23 @@
 on a pilot that is itself blurred, so at creases and ears it underestimates the bias and
 smooths too far. The selector reads the same kind of evidence at several neighbourhood sizes
 and is trained on meshes with known truth to weigh the candidates so that the blend's
-distance to the truth is least (`selector_training.py`). No torch here.
+distance to the truth is least (`selector_training.py`). The smoothing steps, nearly all of
+the work, run in scipy, or in torch on a device (`FieldOps`) where torch is imported lazily.
 """
 
 from __future__ import annotations
 
+import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
 from math import comb
+from typing import Any
 
 import numpy as np
+import scipy.sparse as sp
 from numpy.typing import NDArray
 
-from pipeline.enhance.baselines import mean_operator, twice_field
+from pipeline.enhance.baselines import mean_operator
 from pipeline.mesh import TriangleMesh, vertex_normals
 
 
@@ -50,8 +55,54 @@ class TwicingCandidates:
     """Estimated standard deviation of the vertex noise along the normals."""
 
 
-def twicing_candidates(mesh: TriangleMesh, config: TwicingBlendConfig) -> TwicingCandidates:
-    """The candidates and their features.
+@dataclass(frozen=True)
+class FieldOps:
+    """Where the smoothing steps, nearly all of the work, run on (V, C) per-vertex fields:
+    one smoothing step, one neighbour average, and how fields go there and come back."""
+
+    step: Callable[[Any], Any]
+    """y + lam (M y - y), lam = 0.5, with M the mean operator."""
+    average: Callable[[Any], Any]
+    """M y."""
+    to_field: Callable[[NDArray[np.float64]], Any]
+    to_numpy: Callable[[Any], NDArray[np.float64]]
+
+
+def field_ops(mean_op: sp.csr_matrix, device: str | None) -> FieldOps:
+    """scipy on the host (None), or torch float64 on `device` ('cpu', 'cuda'), where a
+    step is one sparse product with (I + M) / 2: torch runs it on all cores, or the GPU."""
+    if device is None:
+        return FieldOps(lambda y: y + 0.5 * (mean_op @ y - y), lambda y: mean_op @ y,
+                        _same, _same)
+    import torch
+
+    def to_torch(x: NDArray) -> Any:
+        return torch.from_numpy(np.ascontiguousarray(x, dtype=np.float64)).to(device)
+
+    def sparse(a: sp.csr_matrix) -> Any:
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
+            return torch.sparse_csr_tensor(
+                torch.from_numpy(a.indptr.astype(np.int64)),
+                torch.from_numpy(a.indices.astype(np.int64)),
+                torch.from_numpy(a.data.astype(np.float64)), size=a.shape,
+                check_invariants=False,
+            ).to(device)
+
+    half_step = sparse((0.5 * sp.identity(mean_op.shape[0]) + 0.5 * mean_op).tocsr())
+    average = sparse(mean_op)
+    return FieldOps(lambda y: half_step @ y, lambda y: average @ y, to_torch,
+                    lambda t: t.cpu().numpy())
+
+
+def _same(x: Any) -> Any:
+    return x
+
+
+def twicing_candidates(
+    mesh: TriangleMesh, config: TwicingBlendConfig, device: str | None = None
+) -> TwicingCandidates:
+    """The candidates and their features; the smoothing steps on `device` (`field_ops`).
 
     Per vertex, along the pilot's normal and divided by the estimated noise std: the squared
     residual of the mesh about the pilot, the pilot's curvature (signed and absolute, as the
@@ -60,10 +111,13 @@ def twicing_candidates(mesh: TriangleMesh, config: TwicingBlendConfig) -> Twicin
     the pilot. Each is given at every neighbourhood size in `feature_rings`.
     """
     m = mean_operator(mesh.faces, mesh.vertex_count)
+    ops = field_ops(m, device)
     x = mesh.vertices_m
     # A fixed probe: the result depends on the mesh alone.
     probe = np.random.default_rng(0).normal(size=(len(x), 1))
-    both = twice_field(m, np.hstack([x, probe]), config.pilot_iterations, config.passes, 0.5)
+    (pilot_field,) = _twicings(ops.step, ops.to_field(np.hstack([x, probe])),
+                               (config.pilot_iterations,), config.passes)
+    both = ops.to_numpy(pilot_field)
     pilot = both[:, :3]
     normals = vertex_normals(pilot, mesh.faces).astype(np.float64)
     residual = np.sum((x - pilot) * normals, axis=1)
@@ -76,20 +130,21 @@ def twicing_candidates(mesh: TriangleMesh, config: TwicingBlendConfig) -> Twicin
     ]
     columns.append(np.abs(columns[-1]))
     candidates = []
-    twiced = _twicings(m, np.hstack([x, pilot]), config.iterations, config.passes)
-    for out in twiced:
+    twiced = _twicings(ops.step, ops.to_field(np.hstack([x, pilot])), config.iterations,
+                       config.passes)
+    for out in map(ops.to_numpy, twiced):
         candidates.append(out[:, :3])
         pilot_move = np.sum((out[:, 3:] - pilot) * normals, axis=1) / noise_std_m
         from_pilot = np.sum((out[:, :3] - pilot) * normals, axis=1) / noise_std_m
         columns += [pilot_move**2, pilot_move, from_pilot**2]
-    features = _multiscale(m, np.stack(columns, axis=1), config.feature_rings)
+    scales = _multiscale(ops.average, ops.to_field(np.stack(columns, axis=1)),
+                         config.feature_rings)
+    features = np.concatenate([ops.to_numpy(a) for a in scales], axis=1)
     return TwicingCandidates(np.stack(candidates), features.astype(np.float32), noise_std_m)
 
 
-def _twicings(
-    m, x: NDArray[np.float64], counts: tuple[int, ...], passes: int, lam: float = 0.5
-) -> list[NDArray[np.float64]]:
-    """`twice_field(m, x, k, passes, lam)` for every k in `counts`, from one run of smoothing steps.
+def _twicings(step: Callable[[Any], Any], x, counts: tuple[int, ...], passes: int) -> list:
+    """`twice_field(m, x, k, passes, 0.5)` for every k in `counts`, from one run of `step`s.
 
     With L one smoothing step, `passes` passes of k steps are I - (I - L^k)^passes, a sum of
     powers L^(j k) (binomial expansion), so passes * max(counts) steps serve every count
@@ -98,7 +153,7 @@ def _twicings(
     needed = {j * k for k in counts for j in range(1, passes + 1)}
     powers, y = {0: x}, x
     for n in range(1, max(needed) + 1):
-        y = y + lam * (m @ y - y)
+        y = step(y)
         if n in needed:
             powers[n] = y
     return [
@@ -107,15 +162,15 @@ def _twicings(
     ]
 
 
-def _multiscale(m, columns: NDArray[np.float64], rings: tuple[int, ...]) -> NDArray[np.float64]:
-    """(V, C * len(rings)) the columns after each cumulative number of averaging passes."""
+def _multiscale(average: Callable[[Any], Any], columns, rings: tuple[int, ...]) -> list:
+    """(V, C) the columns after each cumulative number of averaging passes in `rings`."""
     out, done, a = [], 0, columns
     for r in rings:
         for _ in range(r - done):
-            a = m @ a
+            a = average(a)
         done = r
         out.append(a)
-    return np.concatenate(out, axis=1)
+    return out
 
 
 def blend(candidates: NDArray[np.float64], weights: NDArray) -> NDArray[np.float64]:

@@ -9,7 +9,7 @@ from numpy.typing import NDArray
 
 from pipeline.enhance.baselines import mean_operator
 from pipeline.enhance.render import DepthRenders, project
-from pipeline.mesh import TriangleMesh, vertex_normals
+from pipeline.mesh import TriangleMesh, face_normals, vertex_normals
 
 
 @dataclass(frozen=True)
@@ -119,7 +119,22 @@ def update_vertices(
         moved = v + _smooth_unseen(shift, seen, mean_op, config.unseen_iterations)
     else:
         moved = _smooth_unseen(v + shift, seen, mean_op, config.unseen_iterations)
-    return mesh.with_vertices(moved), seen
+    return mesh.with_vertices(unfolded(v, moved, mesh.faces)), seen
+
+
+def unfolded(before_m: NDArray, after_m: NDArray, faces: NDArray[np.int32]) -> NDArray:
+    """(V, 3) `after_m` with the corners of every face the move turned over (normal more than
+    90 degrees from its own before) put back where they were, until none is: vertices move
+    independently, and a fold is the one defect the connectivity cannot show."""
+    normals_before = face_normals(before_m, faces)
+    out = after_m.copy()
+    while True:
+        # Each round puts back at least one moved vertex, so it ends at the latest at before.
+        folded = np.sum(face_normals(out, faces) * normals_before, axis=1) < 0
+        if not folded.any():
+            return out
+        corners = faces[folded].ravel()
+        out[corners] = before_m[corners]
 
 
 def _smooth_unseen(v: NDArray, seen: NDArray[np.bool_], mean_op, iterations: int) -> NDArray:

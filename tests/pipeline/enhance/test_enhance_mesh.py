@@ -87,3 +87,16 @@ def test_a_negative_noise_gate_is_named() -> None:
 
     with pytest.raises(ValueError, match="min_noise_ratio"):
         validate_config(EnhanceConfig(min_noise_ratio=-0.1))
+
+
+def test_progress_names_every_stage_in_order_and_ends_at_one() -> None:
+    from pipeline.enhance.config import STAGE_PROGRESS
+    from pipeline.enhance.data import noisy_along_normals
+    from tests.pipeline.enhance.conftest import sphere
+
+    noisy = noisy_along_normals(sphere(0.5, 24), 0.01, np.random.default_rng(0))
+    reported: list[float] = []
+    enhance_mesh(noisy, EnhanceConfig(method="regressor", resolution=32, min_noise_ratio=0.0),
+                 reported.append)
+    assert reported == list(STAGE_PROGRESS.values())
+    assert reported == sorted(reported) and reported[-1] == 1.0

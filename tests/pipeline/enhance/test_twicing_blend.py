@@ -65,3 +65,13 @@ def test_blend_of_one_hot_weights_picks_and_uniform_weights_average():
     pick[:, 1] = 1.0
     assert np.allclose(blend(c.vertices_m, pick), c.vertices_m[1])
     assert np.allclose(blend(c.vertices_m, np.full((v, 3), 1 / 3)), c.vertices_m.mean(axis=0))
+
+
+def test_torch_steps_give_the_scipy_candidates_and_features():
+    """The selector's smoothing steps may run in torch (all cores, or the GPU): the same
+    candidates and features as scipy's, to rounding."""
+    mesh = _noisy_sphere()
+    host, torch_cpu = twicing_candidates(mesh, SMALL), twicing_candidates(mesh, SMALL, "cpu")
+    assert np.allclose(torch_cpu.vertices_m, host.vertices_m, rtol=0, atol=1e-12)
+    assert np.allclose(torch_cpu.features, host.features, rtol=1e-5, atol=1e-5)
+    assert torch_cpu.noise_std_m == pytest.approx(host.noise_std_m, rel=1e-12)

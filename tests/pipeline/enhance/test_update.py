@@ -1,8 +1,11 @@
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from pipeline.enhance.render import make_views, render_depth, view_directions
-from pipeline.enhance.update import UpdateConfig, update_vertices
+from pipeline.enhance.update import UpdateConfig, unfolded, update_vertices
+from pipeline.mesh import face_normals
 from tests.pipeline.enhance.conftest import radial_rms_m, sphere
 
 
@@ -87,3 +90,29 @@ def test_following_the_change_keeps_the_mesh_where_nothing_changed_and_moves_it_
     # Farther along views that look at the sphere is inwards; averaged over the views that
     # see a vertex, a little less than 1 mm.
     assert np.median(radial[seen]) == pytest.approx(-0.001, abs=3e-4)
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), scale_m=st.floats(0.001, 0.2))
+def test_no_face_is_left_turned_over_and_every_vertex_is_where_it_was_or_went(seed, scale_m):
+    """Random moves up to several edge lengths fold many faces; `unfolded` puts back just the
+    corners it must."""
+    mesh = sphere(0.5, 12)
+    before = mesh.vertices_m
+    after = before + np.random.default_rng(seed).normal(scale=scale_m, size=before.shape)
+    out = unfolded(before, after, mesh.faces)
+    dots = np.sum(face_normals(out, mesh.faces) * face_normals(before, mesh.faces), axis=1)
+    assert (dots >= 0).all()
+    assert (np.all(out == before, axis=1) | np.all(out == after, axis=1)).all()
+
+
+def test_a_move_that_turns_a_face_over_is_put_back_and_a_harmless_one_kept():
+    mesh = sphere(0.5, 12)
+    before = mesh.vertices_m
+    after = before.copy()
+    tip = mesh.faces[0, 0]
+    after[tip] += [0.3, 0.0, 0.0]  # sideways past its ring: the fan's far side turns over
+    far = int(np.argmax(np.linalg.norm(before - before[tip], axis=1)))
+    after[far] *= 1.001  # a millimetre out
+    out = unfolded(before, after, mesh.faces)
+    assert np.array_equal(out[tip], before[tip]) and np.array_equal(out[far], after[far])
