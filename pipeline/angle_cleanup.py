@@ -79,8 +79,10 @@ def flip_caps(vertices_m: FloatArray, faces: Faces, max_angle_deg: float) -> tup
     unfolded = ((np.sum(face_normals(vertices_m, new_f) * old_n, axis=1) > 0.5)
                 & (np.sum(face_normals(vertices_m, new_g) * old_n, axis=1) > 0.5))
     pair_key = np.minimum(p, q).astype(np.int64) * (len(vertices_m) + 1) + np.maximum(p, q)
+    # Ascending, as `edge_table` sorts its edges: a binary search finds the new pair's edge.
     existing = edges[:, 0] * (len(vertices_m) + 1) + edges[:, 1]
-    fresh = ~np.isin(pair_key, existing) & (p != q)
+    at = np.minimum(np.searchsorted(existing, pair_key), len(existing) - 1)
+    fresh = (existing[at] != pair_key) & (p != q)
     _, key_counts = np.unique(pair_key, return_counts=True)
     unique_new = key_counts[np.searchsorted(np.unique(pair_key), pair_key)] == 1
     good = (new_min > old_min) & unfolded & fresh & unique_new

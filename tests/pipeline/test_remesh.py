@@ -103,3 +103,27 @@ def test_bad_config_is_a_value_error() -> None:
         RemeshConfig(target_edge_length_m=0)
     with pytest.raises(ValueError):
         RemeshConfig(min_angle_deg=70)
+
+
+@pytest.mark.parametrize("open_mesh", [False, True])
+def test_the_kernel_equals_gpytoolbox_remesh_botsch(open_mesh: bool) -> None:
+    """The kernel calls gpytoolbox's binding past its wrapper's checks; it must still be
+    exactly the wrapper's remesh, boundary vertices held, on a closed and an open mesh."""
+    import gpytoolbox
+
+    from pipeline.remesh import _kernel
+
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
+    v = np.asarray(sphere.vertices, np.float64)
+    v += np.random.default_rng(0).normal(scale=0.004, size=v.shape)
+    f = np.asarray(sphere.faces, np.int32)
+    if open_mesh:
+        f = f[v[f].mean(axis=1)[:, 2] < 0.2]  # cut the cap off: a boundary loop
+        used = np.unique(f)
+        v, f = v[used], np.searchsorted(used, f).astype(np.int32)
+    ours = _kernel(v, f, 0.06, 2)
+    theirs = gpytoolbox.remesh_botsch(v, f, i=2, h=0.06, project=True)
+    assert np.array_equal(ours[0], theirs[0]) and np.array_equal(ours[1], theirs[1])
+    if open_mesh:
+        held = np.unique(edge_table(f)[0][np.bincount(edge_table(f)[1].ravel()) == 1])
+        assert np.array_equal(ours[0][: len(held)], v[held])  # boundary kept, first

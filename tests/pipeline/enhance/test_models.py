@@ -104,4 +104,4 @@ def test_vae_posterior_starts_narrow():
     """A small starting variance keeps early latents informative (against posterior collapse)."""
     d, v = _depth()
     post = DepthVAE(VAEConfig(channels=(8, 8, 16, 16), initial_logvar=-6.0)).encode(d, v, d)
-    assert float(post.logvar.mean()) < -4.0
+    assert float(post.logvar.mean().detach()) < -4.0

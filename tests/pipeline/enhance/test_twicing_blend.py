@@ -75,3 +75,11 @@ def test_torch_steps_give_the_scipy_candidates_and_features():
     assert np.allclose(torch_cpu.vertices_m, host.vertices_m, rtol=0, atol=1e-12)
     assert np.allclose(torch_cpu.features, host.features, rtol=1e-5, atol=1e-5)
     assert torch_cpu.noise_std_m == pytest.approx(host.noise_std_m, rel=1e-12)
+
+
+@pytest.mark.skipif(not __import__("torch").cuda.is_available(), reason="no CUDA device")
+def test_cuda_steps_give_the_scipy_candidates():
+    mesh = _noisy_sphere()
+    host, gpu = twicing_candidates(mesh, SMALL), twicing_candidates(mesh, SMALL, "cuda")
+    assert np.allclose(gpu.vertices_m, host.vertices_m, rtol=0, atol=1e-12)
+    assert np.allclose(gpu.features, host.features, rtol=1e-5, atol=1e-5)
