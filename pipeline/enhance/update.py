@@ -144,6 +144,7 @@ def _smooth_unseen(v: NDArray, seen: NDArray[np.bool_], mean_op, iterations: int
     unseen = ~seen
     if not unseen.any():
         return out
+    rows = mean_op[unseen]  # only the unseen rows change: a seventh of the product's work
     for _ in range(iterations):
-        out[unseen] = (mean_op @ out)[unseen]
+        out[unseen] = rows @ out
     return out
