@@ -85,8 +85,10 @@ class EnhanceConfig:
     """How vertices follow the enhanced depth."""
     remesh_iterations: int = 1
     """Rounds of a light isotropic remesh at the mesh's own mean edge length after the
-    view-based update, whose independent vertex moves can leave slivers and folds; 0 keeps
-    the connectivity."""
+    view-based update (the update itself already puts back moves that turn a face over); 0
+    keeps the connectivity. On the benchmark's bunny it takes the LDM from 0.927 to 0.925 mm
+    C2M RMS and its normal error from 6.3 to 6.2 degrees, and costs 4.5 of the 9.7 s (2 CPU
+    cores, fresh process); on a GPU it would be nearly all of the time."""
     device: str = "auto"
     """Torch device for the networks: auto (CUDA when present), cpu or cuda."""
     weights: dict[str, bytes] | None = None
