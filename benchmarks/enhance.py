@@ -361,8 +361,8 @@ def targets(methods: dict, perf: dict) -> dict:
             ),
         }
     out["best_ldm"] = ldm_best
-    fast, fast_regressor = methods.get("ldm_4_steps_no_remesh", {}), methods.get(
-        "regressor_no_remesh", {})
+    fast = methods.get("ldm_4_steps_no_remesh", {})
+    fast_regressor = methods.get("regressor_no_remesh", {})
     if "c2m_rms_mm" in fast and "c2m_rms_mm" in fast_regressor:
         out["ldm_4_steps_no_remesh"] = {
             "rms_gain_over_best_classical": round(1.0 - fast["c2m_rms_mm"] / best["c2m_rms_mm"], 4),
