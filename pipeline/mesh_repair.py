@@ -14,12 +14,15 @@ Faces = NDArray[np.int32]
 def triangle_angles_deg(vertices_m: FloatArray, faces: Faces) -> FloatArray:
     """(F, 3) interior angle at each corner of each face, degrees (0 for degenerate)."""
     tri = vertices_m[faces]
+    # side[c] runs from corner c to corner c + 1; corner c sits between side[c] and the
+    # reversed side[c - 1], so each side's length is taken once, not twice.
+    side = [tri[:, (c + 1) % 3] - tri[:, c] for c in range(3)]
+    length = [np.linalg.norm(s, axis=1) for s in side]
     angles = np.zeros(faces.shape, dtype=np.float64)
     for c in range(3):
-        u = tri[:, (c + 1) % 3] - tri[:, c]
-        w = tri[:, (c + 2) % 3] - tri[:, c]
-        denom = np.linalg.norm(u, axis=1) * np.linalg.norm(w, axis=1)
-        cos = np.divide(np.sum(u * w, axis=1), denom, out=np.ones(len(faces)), where=denom > 0)
+        denom = length[c] * length[c - 1]
+        dot = -np.sum(side[c] * side[c - 1], axis=1)
+        cos = np.divide(dot, denom, out=np.ones(len(faces)), where=denom > 0)
         angles[:, c] = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
     return angles
 

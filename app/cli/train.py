@@ -58,11 +58,9 @@ def train(
     from tqdm import tqdm
 
     from pipeline.enhance import train as tr
-    from pipeline.enhance.data import procedural_meshes
     from pipeline.enhance.inference import ldm_to_bytes, weights_to_bytes
     from pipeline.enhance.pipelines.depth_ldm import LDMModels
     from pipeline.enhance.validate import validate_ldm, validate_regressor
-    from pipeline.io.mesh_io import read_mesh
 
     if config not in tr.CONFIGS:
         raise ValueError(f"--config: {config!r} is not one of {', '.join(tr.CONFIGS)}")
@@ -91,13 +89,7 @@ def train(
     report = json.loads(report_path.read_text()) if resume and report_path.exists() else {}
     report.update({"config": asdict(cfg), "seed": seed, "device": device})
 
-    sources = sorted(p for p in meshes.glob("*") if p.suffix.lower() in (".obj", ".ply", ".off"))
-    sources = [p for p in sources if not p.stem.startswith(TEST_MESH_PREFIX)]
-    named = [(p.stem, read_mesh(p)) for p in sources]
-    val_names = [n for n, _ in named if n in VALIDATION_MESHES] or [n for n, _ in named][-1:]
-    procs = procedural_meshes(__import__("numpy").random.default_rng(seed), procedural + 1)
-    train_set = [(n, m) for n, m in named if n not in val_names] + procs[:-1]
-    val_set = [(n, m) for n, m in named if n in val_names] + procs[-1:]
+    train_set, val_set = training_sets(meshes, procedural, seed)
     report["data"] = {"train": [n for n, _ in train_set], "validation": [n for n, _ in val_set]}
     if "selector" in wanted:
         wanted.remove("selector")
@@ -266,6 +258,25 @@ def selector_stage(out: Path, train_set, val_set, config, seed: int) -> dict:
 
 
 POSES_PER_JOB = 8
+
+
+def training_sets(meshes: Path, procedural: int, seed: int) -> tuple[list, list]:
+    """(train, validation) lists of (name, mesh): the folder's meshes but the test model,
+    split by mesh (VALIDATION_MESHES held apart), and `procedural` seeded shapes (one more
+    held apart)."""
+    import numpy as np
+
+    from pipeline.enhance.data import procedural_meshes
+    from pipeline.io.mesh_io import read_mesh
+
+    sources = sorted(p for p in meshes.glob("*") if p.suffix.lower() in (".obj", ".ply", ".off"))
+    sources = [p for p in sources if not p.stem.startswith(TEST_MESH_PREFIX)]
+    named = [(p.stem, read_mesh(p)) for p in sources]
+    val_names = [n for n, _ in named if n in VALIDATION_MESHES] or [n for n, _ in named][-1:]
+    procs = procedural_meshes(np.random.default_rng(seed), procedural + 1)
+    train_set = [(n, m) for n, m in named if n not in val_names] + procs[:-1]
+    val_set = [(n, m) for n, m in named if n in val_names] + procs[-1:]
+    return train_set, val_set
 
 
 def training_pairs(items, data, seed: int, workers: int, progress=None):

@@ -45,12 +45,32 @@ def _tuples(d: dict) -> dict:
 
 
 def load_regressor(data: bytes):
-    from pipeline.enhance.models.regressor import RegressorConfig, ResidualUNet
+    """A `ResidualUNet`, or a `RefinedRegressor` where the metadata names the regressor it
+    refines (`regressor_to_bytes`)."""
+    from pipeline.enhance.models.regressor import RefinedRegressor, RegressorConfig, ResidualUNet
 
     state, cfg = weights_from_bytes(data)
+    refines_cfg = cfg.pop("refines_regressor", None)
     model = ResidualUNet(RegressorConfig(**_tuples(cfg)))
+    if refines_cfg is not None:
+        first = ResidualUNet(RegressorConfig(**_tuples(refines_cfg)))
+        model = RefinedRegressor(first, model)
     model.load_state_dict(state)
     return model.eval()
+
+
+def regressor_to_bytes(model, half: bool = False) -> bytes:
+    """safetensors bytes of a `ResidualUNet` or a `RefinedRegressor` (with the regressor it
+    refines, so the two cannot be mismatched), its config as metadata."""
+    from dataclasses import asdict
+
+    from pipeline.enhance.models.regressor import RefinedRegressor
+
+    if isinstance(model, RefinedRegressor):
+        meta = {**asdict(model.second.config), "refines_regressor": asdict(model.first.config)}
+    else:
+        meta = asdict(model.config)
+    return weights_to_bytes(model.state_dict(), meta, half)
 
 
 def load_vae(data: bytes):

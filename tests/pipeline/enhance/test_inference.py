@@ -7,8 +7,14 @@ import pytest
 import torch
 
 from pipeline.enhance import EnhanceConfig
-from pipeline.enhance.inference import dihedral, run_network, weights_to_bytes
-from pipeline.enhance.models.regressor import RegressorConfig, ResidualUNet
+from pipeline.enhance.inference import (
+    dihedral,
+    load_regressor,
+    regressor_to_bytes,
+    run_network,
+    weights_to_bytes,
+)
+from pipeline.enhance.models.regressor import RefinedRegressor, RegressorConfig, ResidualUNet
 from pipeline.enhance.render import DepthRenders, make_views, render_depth, view_directions
 from tests.pipeline.enhance.conftest import sphere
 
@@ -28,6 +34,26 @@ def random_regressor() -> bytes:
     with torch.no_grad():  # a visible, asymmetric correction (the output conv starts small)
         model.conv_out.weight.normal_(0.0, 0.5)
     return weights_to_bytes(model.state_dict(), asdict(cfg))
+
+
+def test_refined_regressor_round_trips_and_corrects_the_first_estimate(random_regressor):
+    """A regressor refining a regressor (the LDM's plain control) is stored with the
+    regressor it refines and loads back as the same function; only the second trains."""
+    first = load_regressor(random_regressor)
+    torch.manual_seed(1)
+    second = ResidualUNet(RegressorConfig(channels=(8, 8, 16)))
+    model = RefinedRegressor(first, second).eval()
+    depth = torch.rand(2, 1, 24, 24)
+    valid = torch.ones_like(depth, dtype=torch.bool)
+    with torch.no_grad():
+        expected = second(first(depth, valid), valid)
+        loaded = load_regressor(regressor_to_bytes(model))
+        assert isinstance(loaded, RefinedRegressor)
+        assert loaded.second.config.channels == (8, 8, 16)
+        assert torch.allclose(loaded(depth, valid), expected, atol=1e-6)
+    assert [p.requires_grad for p in model.first.parameters()] == [False] * len(
+        list(first.parameters()))
+    assert all(p.requires_grad for p in model.second.parameters())
 
 
 def test_full_ensemble_is_equivariant_to_flips(random_regressor):
