@@ -51,10 +51,9 @@ def load_regressor(data: bytes):
 
     state, cfg = weights_from_bytes(data)
     refines_cfg = cfg.pop("refines_regressor", None)
-    model = ResidualUNet(RegressorConfig(**_tuples(cfg)))
-    if refines_cfg is not None:
-        first = ResidualUNet(RegressorConfig(**_tuples(refines_cfg)))
-        model = RefinedRegressor(first, model)
+    second = ResidualUNet(RegressorConfig(**_tuples(cfg)))
+    model = second if refines_cfg is None else RefinedRegressor(
+        ResidualUNet(RegressorConfig(**_tuples(refines_cfg))), second)
     model.load_state_dict(state)
     return model.eval()
 
