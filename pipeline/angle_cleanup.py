@@ -13,7 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from pipeline.mesh import face_normals
-from pipeline.mesh_repair import compact, edge_table, triangle_angles_deg
+from pipeline.mesh_repair import compact, edge_table, faces_per_edge, triangle_angles_deg
 
 FloatArray = NDArray[np.float64]
 Faces = NDArray[np.int32]
@@ -24,7 +24,7 @@ def _edge_faces(opposite: NDArray[np.int64], edge_count: int
     """For every edge: its number of faces and up to two (face, corner) half-edges."""
     flat = opposite.ravel()
     order = np.argsort(flat, kind="stable")
-    counts = np.bincount(flat, minlength=edge_count)
+    counts = faces_per_edge(opposite, edge_count)
     start = np.concatenate([[0], np.cumsum(counts)[:-1]])
     first = order[start]
     second = order[np.minimum(start + 1, len(order) - 1)]
@@ -104,7 +104,7 @@ def collapse_needles(vertices_m: FloatArray, faces: Faces, min_angle_deg: float
     if len(cand_face) == 0:
         return vertices_m, faces, 0
     edges, opposite = edge_table(faces)
-    counts, _, _ = _edge_faces(opposite, len(edges))
+    counts = faces_per_edge(opposite, len(edges))
     boundary_vertex = np.zeros(len(vertices_m), dtype=bool)
     boundary_vertex[edges[counts == 1].ravel()] = True
     edge = np.unique(opposite[cand_face, np.argmin(angles[cand_face], axis=1)])
@@ -184,7 +184,7 @@ def drop_boundary_slivers(vertices_m: FloatArray, faces: Faces, min_angle_deg: f
     if not bad.any():
         return faces, 0
     edges, opposite = edge_table(faces)
-    counts = np.bincount(opposite.ravel(), minlength=len(edges))
+    counts = faces_per_edge(opposite, len(edges))
     on_boundary = counts[opposite] == 1  # (F, 3): edge opposite each corner is a boundary
     boundary_vertex = np.zeros(len(vertices_m), dtype=bool)
     boundary_vertex[edges[counts == 1].ravel()] = True

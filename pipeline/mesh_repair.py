@@ -44,6 +44,12 @@ def edge_table(faces: Faces) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
     return edges, inverse.reshape(3, -1).T
 
 
+def faces_per_edge(opposite: NDArray[np.int64], edge_count: int) -> NDArray[np.int64]:
+    """(E,) how many faces use each edge, from `edge_table`'s (F, 3) opposite-edge table:
+    1 on the boundary, 2 inside, more where the mesh is non-manifold."""
+    return np.bincount(opposite.ravel(), minlength=edge_count)
+
+
 def compact(vertices_m: FloatArray, faces: Faces) -> tuple[FloatArray, Faces]:
     """Drop unreferenced vertices and renumber faces."""
     used = np.zeros(len(vertices_m), dtype=bool)
@@ -110,8 +116,8 @@ def repair(vertices_m: FloatArray, faces: Faces, min_component_share: float = 0.
     removed["duplicate"] = len(faces) - len(first)
     faces = faces[np.sort(first)]
     for _ in range(rounds):
-        _, opposite = edge_table(faces.astype(np.int32))
-        uses = np.bincount(opposite.ravel(), minlength=int(opposite.max(initial=0)) + 1)
+        edges, opposite = edge_table(faces.astype(np.int32))
+        uses = faces_per_edge(opposite, len(edges))
         bad_face = (uses[opposite] > 2).any(axis=1)
         bad_vertex = non_manifold_vertices(faces.astype(np.int32), len(vertices))
         bad_face |= bad_vertex[faces].any(axis=1)

@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 
 from pipeline.angle_cleanup import enforce_angles
 from pipeline.mesh import TriangleMesh
-from pipeline.mesh_repair import edge_table, repair, triangle_angles_deg
+from pipeline.mesh_repair import edge_table, faces_per_edge, repair, triangle_angles_deg
 
 FloatArray = NDArray[np.float64]
 Faces = NDArray[np.int32]
@@ -73,10 +73,10 @@ def _kernel(vertices_m: FloatArray, faces: Faces, edge_m: float, iterations: int
     v = np.asarray(vertices_m, np.float64)
     f = np.asarray(faces, np.int32)
     edges, opposite = edge_table(f)
-    faces_per_edge = np.bincount(opposite.ravel(), minlength=len(edges))
-    if (faces_per_edge > 2).any():
+    uses = faces_per_edge(opposite, len(edges))
+    if (uses > 2).any():
         raise ValueError("Input mesh is non-manifold.")
-    held = np.unique(edges[faces_per_edge == 1])
+    held = np.unique(edges[uses == 1])
     if len(held):
         order = np.concatenate([held, np.delete(np.arange(len(v)), held)])
         new_index = np.empty(len(v), dtype=np.int64)

@@ -7,6 +7,7 @@ import trimesh
 from pipeline.mesh_repair import (
     drop_small_components,
     edge_table,
+    faces_per_edge,
     non_manifold_vertices,
     repair,
     triangle_angles_deg,
@@ -69,3 +70,17 @@ def test_bad_arrays_are_value_errors() -> None:
         repair(v, f + 100)
     with pytest.raises(ValueError, match="vertices_m"):
         repair(np.full_like(v, np.nan), f)
+
+
+def test_faces_per_edge_tells_boundary_interior_and_non_manifold_edges():
+    closed = np.array([[0, 1, 2], [0, 3, 1], [1, 3, 2], [2, 3, 0]], dtype=np.int32)
+    edges, opposite = edge_table(closed)
+    assert (faces_per_edge(opposite, len(edges)) == 2).all()
+    edges, opposite = edge_table(closed[:1])
+    assert (faces_per_edge(opposite, len(edges)) == 1).all()
+    # Three triangles on the edge (0, 1): it is used three times, every other edge once.
+    fan = np.array([[0, 1, 2], [1, 0, 3], [0, 1, 4]], dtype=np.int32)
+    edges, opposite = edge_table(fan)
+    uses = faces_per_edge(opposite, len(edges))
+    assert uses[np.flatnonzero((edges == [0, 1]).all(axis=1))[0]] == 3
+    assert sorted(uses) == [1] * 6 + [3]
