@@ -44,6 +44,11 @@ def train(
         int | None,
         typer.Option("--poses", min=1, help="Poses per source mesh (default: the config's)."),
     ] = None,
+    mix: Annotated[
+        str,
+        typer.Option("--mix", help="Degradation mix of the pairs: full (every degradation) or "
+                     "mesh (only what a mesh's renders carry, as the enhance stage meets)."),
+    ] = "full",
     init: Annotated[
         Path | None,
         typer.Option(
@@ -58,6 +63,7 @@ def train(
     from tqdm import tqdm
 
     from pipeline.enhance import train as tr
+    from pipeline.enhance.data import MIXES, with_mix
     from pipeline.enhance.inference import ldm_to_bytes, weights_to_bytes
     from pipeline.enhance.pipelines.depth_ldm import LDMModels
     from pipeline.enhance.validate import validate_ldm, validate_regressor
@@ -67,6 +73,9 @@ def train(
     cfg = tr.scaled(tr.CONFIGS[config], budget_scale) if budget_scale != 1.0 else tr.CONFIGS[config]
     if poses is not None:
         cfg = replace(cfg, data=replace(cfg.data, poses_per_mesh=poses))
+    if mix not in MIXES:
+        raise ValueError(f"--mix: {mix!r} is not one of {', '.join(MIXES)}")
+    cfg = replace(cfg, data=with_mix(cfg.data, mix))
     if minutes is not None:
         cfg = tr.capped(cfg, minutes)
     wanted = [s.strip() for s in stages.split(",") if s.strip()]

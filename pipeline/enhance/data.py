@@ -69,6 +69,22 @@ class DataConfig:
     zero), as an uncoloured mesh has."""
 
 
+MIXES: dict[str, dict[str, float]] = {
+    "full": {},
+    "mesh": {"kinect_probability": 0.0, "hole_probability": 0.0, "downup_probability": 0.0},
+}
+"""Degradation mixes by name. `full`: every degradation the issue names. `mesh`: only what a
+mesh's renders carry (vertex noise along normals, near-clean surfaces, colour), the input of
+the enhance stage, which renders a mesh: sensor noise, holes and resampling never reach it."""
+
+
+def with_mix(config: DataConfig, mix: str) -> DataConfig:
+    """`config` with the degradation mix named `mix` (`MIXES`) applied."""
+    if mix not in MIXES:
+        raise ValueError(f"mix: {mix!r} is not one of {', '.join(MIXES)}")
+    return replace(config, **MIXES[mix])
+
+
 @dataclass(frozen=True)
 class DepthPairs:
     """Aligned degraded/clean normalised depth images."""

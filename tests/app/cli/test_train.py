@@ -135,3 +135,19 @@ def test_the_shipped_model_card_is_the_one_its_training_report_renders():
     card = weights.joinpath("MODEL_CARD.md").read_text()
     assert card == model_card(report)
     assert "## The LDM refines the regressor (these are the shipped vae and ldm)" in card
+
+
+def test_mesh_mix_drops_only_the_sensor_degradations_and_unknown_mixes_are_refused(tmp_path):
+    from dataclasses import asdict
+
+    from app.cli import app
+    from pipeline.enhance.data import with_mix
+
+    mesh = with_mix(TINY_DATA, "mesh")
+    changed = {k for k, v in asdict(mesh).items() if asdict(TINY_DATA)[k] != v}
+    assert changed == {"kinect_probability", "hole_probability", "downup_probability"}
+    assert mesh.kinect_probability == mesh.hole_probability == mesh.downup_probability == 0.0
+    assert with_mix(TINY_DATA, "full") == TINY_DATA
+    result = CliRunner().invoke(app, ["train", "--out", str(tmp_path), "--mix", "sensor"])
+    assert result.exit_code != 0
+    assert "--mix: 'sensor' is not one of full, mesh" in str(result.exception)
