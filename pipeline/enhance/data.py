@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -69,7 +70,7 @@ class DataConfig:
     zero), as an uncoloured mesh has."""
 
 
-MIXES: dict[str, dict[str, float]] = {
+MIXES: dict[str, dict[str, Any]] = {
     "full": {},
     "mesh": {"kinect_probability": 0.0, "hole_probability": 0.0, "downup_probability": 0.0},
 }
