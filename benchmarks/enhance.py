@@ -33,7 +33,7 @@ sys.path.insert(0, str(ROOT))
 
 from pipeline.enhance import EnhanceConfig, enhance_mesh  # noqa: E402
 from pipeline.enhance.config import STAGE_PROGRESS  # noqa: E402
-from pipeline.enhance.data import noisy_along_normals  # noqa: E402
+from pipeline.enhance.data import DataConfig, noisy_along_normals  # noqa: E402
 from pipeline.enhance.metrics import c2m_summary, normal_error_deg  # noqa: E402
 from pipeline.mesh import TriangleMesh  # noqa: E402
 
@@ -43,6 +43,13 @@ SWEEPS = {
     "bilateral": range(1, 31),
     "twicing": range(2, 81, 2),
 }
+VERTEX_NOISE_ONLY = DataConfig(
+    poses_per_mesh=2, edge_fraction=(0.005, 0.005), noise_fraction=(0.01, 0.01),
+    light_noise_probability=0.0, kinect_probability=0.0, hole_probability=0.0,
+    downup_probability=0.0, color_probability=0.0,
+)
+"""The benchmark's degradation alone (its noise and edge length relative to the mesh, no
+sensor noise, holes, resampling or colour), for depth-level figures on held-apart meshes."""
 ISSUE_CLASSICAL = ("taubin", "laplacian", "bilateral")
 """The classical methods issue 4's RMS target is set against; twicing is reported beside them."""
 
@@ -104,7 +111,7 @@ def depth_level(weights: dict | None, views: int, seed: int, meshes: Path) -> di
     the networks' corrections are calibrated on the benchmark's degradation alone."""
     import cv2
 
-    from pipeline.enhance.data import DataConfig, make_pairs, procedural_meshes
+    from pipeline.enhance.data import make_pairs, procedural_meshes
     from pipeline.enhance.validate import depth_scores, noisy_input
     from pipeline.io.mesh_io import read_mesh
 
@@ -131,15 +138,8 @@ def depth_level(weights: dict | None, views: int, seed: int, meshes: Path) -> di
     )
     for name, pred in network_predictions(weights, pairs, idx, (1, 4, 10)).items():
         out[name] = {"error": pred} if isinstance(pred, str) else depth_scores(pred, pairs, idx)
-    # The benchmark's degradation alone (its noise and edge length relative to the mesh,
-    # no sensor noise, holes, resampling or colour), on the same held-apart meshes.
-    only_vertex_noise = DataConfig(
-        poses_per_mesh=2, edge_fraction=(0.005, 0.005), noise_fraction=(0.01, 0.01),
-        light_noise_probability=0.0, kinect_probability=0.0, hole_probability=0.0,
-        downup_probability=0.0, color_probability=0.0,
-    )
     out["vertex_noise_only"] = calibration(
-        make_pairs(val[:2], only_vertex_noise, seed + 2000), weights, views
+        make_pairs(val[:2], VERTEX_NOISE_ONLY, seed + 2000), weights, views
     )
     return out
 

@@ -31,20 +31,14 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from enhance import network_predictions  # noqa: E402
+from enhance import VERTEX_NOISE_ONLY, network_predictions  # noqa: E402
 
 from app.cli.train import training_pairs, training_sets  # noqa: E402
 from pipeline.enhance import train as tr  # noqa: E402
-from pipeline.enhance.data import DataConfig, make_pairs  # noqa: E402
+from pipeline.enhance.data import make_pairs  # noqa: E402
 from pipeline.enhance.inference import load_ldm, load_regressor, regressor_to_bytes  # noqa: E402
-from pipeline.enhance.models.common import side_inputs  # noqa: E402
 from pipeline.enhance.models.regressor import RefinedRegressor  # noqa: E402
-from pipeline.enhance.validate import (  # noqa: E402
-    depth_scores,
-    noisy_input,
-    validate_ldm,
-    validate_regressor,
-)
+from pipeline.enhance.validate import depth_scores, validate_ldm, validate_regressor  # noqa: E402
 from pipeline.enhance.weights import shipped_bytes  # noqa: E402
 
 
@@ -56,25 +50,15 @@ def identity_start(regressor_bytes: bytes) -> nn.Module:
     return model
 
 
-def vertex_noise_scores(control: nn.Module, val_set, views: int) -> dict:
+def vertex_noise_scores(control_bytes: bytes, val_set, views: int) -> dict:
     """The enhance benchmark's degradation alone on the held-apart meshes, the same renders
     as its `vertex_noise_only` figures (seed 0): base, regressor, control and LDM (4 steps)."""
-    only_vertex_noise = DataConfig(
-        poses_per_mesh=2, edge_fraction=(0.005, 0.005), noise_fraction=(0.01, 0.01),
-        light_noise_probability=0.0, kinect_probability=0.0, hole_probability=0.0,
-        downup_probability=0.0, color_probability=0.0,
-    )
     named = [next((n, m) for n, m in val_set if n == name) for name in ("spot", "fandisk")]
-    pairs = make_pairs(named, only_vertex_noise, 2000)
+    pairs = make_pairs(named, VERTEX_NOISE_ONLY, 2000)
     idx = np.unique(np.linspace(0, len(pairs.source) - 1, views).round().astype(np.int64))
-    d_t = torch.from_numpy(pairs.degraded_n[idx][:, None])
-    v_t = torch.from_numpy(pairs.degraded_valid[idx][:, None])
-    side_t = side_inputs(torch.from_numpy(pairs.edges[idx][:, None]),
-                         torch.from_numpy(noisy_input(pairs, idx)[:, None]), d_t, v_t)
-    with torch.no_grad():
-        controlled = torch.cat([control(d_t[s:s + 6], v_t[s:s + 6], side_t[s:s + 6])
-                                for s in range(0, len(idx), 6)])[:, 0].numpy()
-    preds = {"presmoothed": pairs.degraded_n[idx], "control": controlled,
+    # The control loads as the regressor (`load_regressor` reads a `RefinedRegressor`).
+    controlled = network_predictions({"regressor": control_bytes}, pairs, idx, ())
+    preds = {"presmoothed": pairs.degraded_n[idx], "control": controlled["regressor"],
              **network_predictions(None, pairs, idx, (4,))}
     return {"views": len(idx), **{k: depth_scores(p, pairs, idx) for k, p in preds.items()}}
 
@@ -113,10 +97,11 @@ def main() -> None:
                                      bar.set_postfix_str(msg)),
             initial=model,  # type: ignore[arg-type]
         )
+    control_bytes = regressor_to_bytes(model, half=True)
     if args.out is not None:
         args.out.mkdir(parents=True, exist_ok=True)
         # As regressor.safetensors: `enhance_gain.py --weights DIR` then runs it on meshes.
-        (args.out / "regressor.safetensors").write_bytes(regressor_to_bytes(model, half=True))
+        (args.out / "regressor.safetensors").write_bytes(control_bytes)
     ldm = load_ldm(shipped_bytes("vae"), shipped_bytes("ldm"))
     report = {
         "seed": args.seed,
@@ -132,7 +117,7 @@ def main() -> None:
             "ldm": validate_ldm((ldm.unet, ldm.controlnet), ldm.vae, val_pairs, args.views,
                                 device, ldm.refines),
         },
-        "vertex_noise_only": vertex_noise_scores(model.eval(), val_set, 24),
+        "vertex_noise_only": vertex_noise_scores(control_bytes, val_set, 24),
     }
     print(json.dumps(report, indent=1))
 
