@@ -49,6 +49,19 @@ def train(
         typer.Option("--mix", help="Degradation mix of the pairs: full (every degradation) or "
                      "mesh (only what a mesh's renders carry, as the enhance stage meets)."),
     ] = "full",
+    lr: Annotated[
+        float | None,
+        typer.Option("--lr", min=1e-7, max=1.0,
+                     help="Peak learning rate of every network stage (default: the config's; "
+                     "fine-tuning --init weights wants less, e.g. 2e-4)."),
+    ] = None,
+    loss_mask: Annotated[
+        float | None,
+        typer.Option("--loss-mask", min=0.001, max=1.0,
+                     help="Leave pixels where an input is further than this (normalised depth) "
+                     "from the clean render out of the losses (default: the config's, 0.05; "
+                     "0.02 leaves out all that sees another surface)."),
+    ] = None,
     init: Annotated[
         Path | None,
         typer.Option(
@@ -78,6 +91,10 @@ def train(
     cfg = replace(cfg, data=with_mix(cfg.data, mix))
     if minutes is not None:
         cfg = tr.capped(cfg, minutes)
+    if lr is not None:
+        cfg = tr.with_lr(cfg, lr)
+    if loss_mask is not None:
+        cfg = replace(cfg, loss_mask_threshold_n=loss_mask)
     wanted = [s.strip() for s in stages.split(",") if s.strip()]
     for s in wanted:
         if s not in STAGES.split(","):

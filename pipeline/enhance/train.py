@@ -19,7 +19,7 @@ import torch
 import torch.nn.functional as nnf
 from torch import nn
 
-from pipeline.enhance.data import DataConfig, DepthPairs, same_surface_mask
+from pipeline.enhance.data import SAME_SURFACE_N, DataConfig, DepthPairs, same_surface_mask
 from pipeline.enhance.models.common import RESIDUAL_SCALE, side_inputs
 from pipeline.enhance.models.controlnet import ControlNet
 from pipeline.enhance.models.regressor import RegressorConfig, ResidualUNet
@@ -108,6 +108,11 @@ class TrainConfig:
     plain depth error is lower (1.10 and 1.08 against 1.12). But p = 4 did not help: the LDM
     fine-tuned with it (the shipped LDM's recipe, same pairs and budget) gave 0.592 there and
     spot 0.777 / fandisk 0.729 mm on meshes, against 0.775 / 0.727 with p = 0. So it is 0."""
+    loss_mask_threshold_n: float = SAME_SURFACE_N
+    """Pixels where an input is further than this (normalised depth) from the clean render
+    are left out of the losses (`same_surface_mask`): another surface is seen there. The
+    shipped networks were trained at 0.05; `BULK_SURFACE_N` (0.02) leaves out the rest of
+    those pixels, which at 0.05 still carried about 40 % of the squared loss."""
     ldm_refines_regressor: bool = True
     """The VAE, LDM and fine-tuning stages train on the regressor's estimate in place of the
     base depth (`LDMModels.refines`), so the LDM learns what the regressor leaves; their
@@ -201,6 +206,12 @@ def capped(config: TrainConfig, minutes: float) -> TrainConfig:
     )
 
 
+def with_lr(config: TrainConfig, lr: float) -> TrainConfig:
+    """The same configuration with every network stage's peak learning rate set to `lr`."""
+    return replace(config, **{f"{s}_budget": replace(getattr(config, f"{s}_budget"), lr=lr)
+                              for s in ("regressor", "vae", "ldm", "finetune")})
+
+
 class CropSampler:
     """Random crops of the pairs with random flips and transposes, mostly on the surface.
 
@@ -209,8 +220,10 @@ class CropSampler:
     as long as the training step it fed.
     """
 
-    def __init__(self, pairs: DepthPairs, crop: int, seed: int) -> None:
-        mask = same_surface_mask(pairs)
+    def __init__(
+        self, pairs: DepthPairs, crop: int, seed: int, mask_threshold_n: float = SAME_SURFACE_N
+    ) -> None:
+        mask = same_surface_mask(pairs, threshold_n=mask_threshold_n)
         self.images = torch.from_numpy(np.stack([
             pairs.degraded_n, pairs.degraded_valid, pairs.clean_n, mask, pairs.edges,
             pairs.noisy_n,
@@ -394,7 +407,7 @@ def train_regressor(
     trained weights) or from a fresh initialisation."""
     torch.manual_seed(seed)
     model = (initial or ResidualUNet(config.regressor)).to(device).train()
-    sampler = CropSampler(train, config.crop, seed)
+    sampler = CropSampler(train, config.crop, seed, config.loss_mask_threshold_n)
 
     def step_loss() -> torch.Tensor:
         deg, deg_valid, clean, mask, side = sampler.batch(config.batch, device)
@@ -431,7 +444,7 @@ def train_vae(
     latent scale so latents have unit variance."""
     torch.manual_seed(seed + 1)
     vae = DepthVAE(config.vae).to(device)
-    sampler = CropSampler(train, config.crop, seed + 1)
+    sampler = CropSampler(train, config.crop, seed + 1, config.loss_mask_threshold_n)
 
     calls = [resume["step"] if resume is not None and resume.get("stage") == "vae" else 0]
     warm_steps = max(1.0, config.kl_warmup_fraction * config.vae_budget.steps)
@@ -488,7 +501,7 @@ def train_ldm(
     control.copy_encoder_from(unet)
     schedule = DDPMSchedule()
     alphas = torch.from_numpy(schedule.alphas_cumprod).float().to(device)
-    sampler = CropSampler(train, config.crop, seed + 2)
+    sampler = CropSampler(train, config.crop, seed + 2, config.loss_mask_threshold_n)
     vae.eval().requires_grad_(False)
 
     def step_loss() -> torch.Tensor:
@@ -537,7 +550,7 @@ def train_finetune(
     trained on the depth error it leaves, so the few-step sampler is optimised for the depth
     the mesh update reads rather than for a latent objective two steps removed from it."""
     torch.manual_seed(seed + 3)
-    sampler = CropSampler(train, config.crop, seed + 3)
+    sampler = CropSampler(train, config.crop, seed + 3, config.loss_mask_threshold_n)
     parts = {"vae": models.vae, "unet": models.unet, "controlnet": models.controlnet}
     for part in parts.values():
         part.train().requires_grad_(True)

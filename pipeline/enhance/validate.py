@@ -12,7 +12,7 @@ import numpy as np
 import torch
 from numpy.typing import NDArray
 
-from pipeline.enhance.data import DepthPairs, same_surface_mask
+from pipeline.enhance.data import BULK_SURFACE_N, DepthPairs, same_surface_mask
 from pipeline.enhance.metrics import depth_edge_band
 from pipeline.enhance.models.common import side_inputs
 from pipeline.enhance.models.regressor import ResidualUNet
@@ -29,32 +29,47 @@ def _subset(pairs: DepthPairs, count: int) -> NDArray[np.int64]:
 
 def depth_scores(pred: NDArray, pairs: DepthPairs, idx: NDArray[np.int64]) -> dict[str, float]:
     """RMSE, 3-pixel edge-band RMSE and normal RMSE (thousandths of depth range) of `pred`
-    (n, H, W). The normal RMSE is the error as the mesh update sees it: each pixel's depth
-    error times the cos of the clean surface's slant (its move along the normal), weighted by
-    cos² as the update weighs views, over pixels slanted less than its visibility limit."""
+    (n, H, W), and RMSE and normal RMSE on the bulk of the surface (`BULK_SURFACE_N`). The
+    normal RMSE is the error as the mesh update sees it: each pixel's depth error times the
+    cos of the clean surface's slant (its move along the normal), weighted by cos² as the
+    update weighs views, over pixels slanted less than its visibility limit."""
     from pipeline.enhance.train import slope_weights
 
-    sq, band_sq, n_px, n_band, normal_sq, normal_w = 0.0, 0.0, 0, 0, 0.0, 0.0
+    sums = np.zeros(8)  # sq, n, band sq, band n, normal sq, normal w; bulk sq, bulk n
+    bulk_normal = np.zeros(2)
     res = pairs.clean_n.shape[-1]
     for j, i in enumerate(idx):
-        mask = same_surface_mask(pairs, i)
-        err = (pred[j] - pairs.clean_n[i])[mask]
-        sq += float(np.sum(err.astype(np.float64) ** 2))
-        n_px += err.size
-        band = depth_edge_band(pairs.clean_n[i], pairs.loss_mask[i], 0.02) & mask
-        e2 = (pred[j] - pairs.clean_n[i])[band]
-        band_sq += float(np.sum(e2.astype(np.float64) ** 2))
-        n_band += e2.size
+        err = pred[j].astype(np.float64) - pairs.clean_n[i]
         cos2 = slope_weights(torch.from_numpy(pairs.clean_n[i][None, None]), res, 2)[0, 0]
         cos2_np = cos2.numpy().astype(np.float64)
-        seen = mask & (cos2_np > MIN_COS**2)
-        normal_sq += float(np.sum((pred[j] - pairs.clean_n[i])[seen] ** 2 * cos2_np[seen] ** 2))
-        normal_w += float(np.sum(cos2_np[seen]))
+        band = depth_edge_band(pairs.clean_n[i], pairs.loss_mask[i], 0.02)
+        mask = same_surface_mask(pairs, i)
+        bulk = same_surface_mask(pairs, i, BULK_SURFACE_N)
+        sums[:6] += [*_sq_n(err, mask), *_sq_n(err, band & mask), *_normal_sq_w(err, cos2_np, mask)]
+        sums[6:] += _sq_n(err, bulk)
+        bulk_normal += _normal_sq_w(err, cos2_np, bulk)
     return {
-        "rmse_permille": 1e3 * float(np.sqrt(sq / max(n_px, 1))),
-        "edge_rmse_permille": 1e3 * float(np.sqrt(band_sq / max(n_band, 1))),
-        "normal_rmse_permille": 1e3 * float(np.sqrt(normal_sq / max(normal_w, 1e-12))),
+        "rmse_permille": _rms_permille(sums[0], sums[1]),
+        "edge_rmse_permille": _rms_permille(sums[2], sums[3]),
+        "normal_rmse_permille": _rms_permille(sums[4], sums[5]),
+        "bulk_rmse_permille": _rms_permille(sums[6], sums[7]),
+        "bulk_normal_rmse_permille": _rms_permille(*bulk_normal),
     }
+
+
+def _sq_n(err: NDArray[np.float64], mask: NDArray[np.bool_]) -> tuple[float, float]:
+    return float(np.sum(err[mask] ** 2)), float(np.count_nonzero(mask))
+
+
+def _normal_sq_w(
+    err: NDArray[np.float64], cos2: NDArray[np.float64], mask: NDArray[np.bool_]
+) -> tuple[float, float]:
+    seen = mask & (cos2 > MIN_COS**2)
+    return float(np.sum(err[seen] ** 2 * cos2[seen] ** 2)), float(np.sum(cos2[seen]))
+
+
+def _rms_permille(sq: float, weight: float) -> float:
+    return 1e3 * float(np.sqrt(sq / max(weight, 1e-12)))
 
 
 def _batched(

@@ -25,7 +25,7 @@ def test_pairs_do_not_depend_on_the_number_of_workers():
     assert one.source == two.source
 
 
-def _train_tiny(tmp_path, stages: str):
+def _train_tiny(tmp_path, stages: str, *options: str):
     """`volumesh train --config tiny` on two procedural meshes written as files: (result, out)."""
     from app.cli import app
 
@@ -36,7 +36,7 @@ def _train_tiny(tmp_path, stages: str):
     out = tmp_path / "run"
     result = CliRunner().invoke(app, [
         "train", "--out", str(out), "--config", "tiny", "--meshes", str(meshes),
-        "--procedural", "1", "--workers", "2", "--stages", stages,
+        "--procedural", "1", "--workers", "2", "--stages", stages, *options,
     ])
     return result, out
 
@@ -151,3 +151,13 @@ def test_mesh_mix_drops_only_the_sensor_degradations_and_unknown_mixes_are_refus
     result = CliRunner().invoke(app, ["train", "--out", str(tmp_path), "--mix", "sensor"])
     assert result.exit_code != 0
     assert "--mix: 'sensor' is not one of full, mesh" in str(result.exception)
+
+
+def test_learning_rate_and_loss_mask_options_reach_every_stage(tmp_path):
+    result, out = _train_tiny(tmp_path, "regressor", "--lr", "2e-4", "--loss-mask", "0.02")
+    assert result.exit_code == 0, result.output
+    config = json.loads((out / "training.json").read_text())["config"]
+    assert config["loss_mask_threshold_n"] == 0.02
+    assert {config[f"{s}_budget"]["lr"] for s in ("regressor", "vae", "ldm", "finetune")} == {
+        2e-4
+    }

@@ -275,6 +275,33 @@ def test_surface_mask_drops_pixels_where_either_input_sees_another_surface():
     assert mask.sum() == pairs.loss_mask.sum() - 2
 
 
+def test_a_tighter_surface_mask_drops_pixels_the_default_keeps_and_the_sampler_uses_it():
+    pairs = _ramp_pairs(1, 16)
+    near = replace(pairs, degraded_n=pairs.degraded_n.copy())
+    near.degraded_n[0, 3, 3] -= 0.03  # 0.04 from the clean render: kept at 0.05, not at 0.02
+    default, tight = same_surface_mask(near), same_surface_mask(near, threshold_n=0.02)
+    assert default[0, 3, 3] and not tight[0, 3, 3]
+    assert tight.sum() == default.sum() - 1
+    sampler = CropSampler(near, crop=16, seed=0, mask_threshold_n=0.02)
+    _, _, _, mask, _ = sampler.batch(8, torch.device("cpu"))
+    assert mask.sum() == 8 * tight.sum()  # the whole image is the one crop, in some flip
+
+
+def test_bulk_scores_leave_out_what_the_tight_mask_drops(pairs):
+    from pipeline.enhance.validate import depth_scores
+
+    idx = np.arange(len(pairs.source))
+    pred = pairs.clean_n[idx].copy()
+    inside = same_surface_mask(pairs, idx, 0.02)
+    pred[inside] += 0.001
+    scores = depth_scores(pred, pairs, idx)
+    assert scores["bulk_rmse_permille"] == pytest.approx(1.0, rel=1e-3)
+    # Pixels between the two thresholds are exact here, so the default score is smaller.
+    between = same_surface_mask(pairs, idx) & ~inside
+    expected = np.sqrt(inside.sum() / (inside.sum() + between.sum()))
+    assert scores["rmse_permille"] == pytest.approx(expected, rel=1e-3)
+
+
 def _zero_correction_ldm(pairs, refines=None) -> LDMModels:
     """An untrained LDM whose decoder adds nothing to its guide."""
     from pipeline.enhance.models.controlnet import ControlNet
