@@ -128,7 +128,7 @@ def test_the_shipped_model_card_is_the_one_its_training_report_renders():
     """The card is written from training.json (`model_card`), so the two cannot drift."""
     from importlib import resources
 
-    from app.cli.train import model_card
+    from app.cli.model_card import model_card
 
     weights = resources.files("pipeline.enhance.weights")
     report = json.loads(weights.joinpath("training.json").read_text())
@@ -156,8 +156,9 @@ def test_mesh_mix_drops_only_the_sensor_degradations_and_unknown_mixes_are_refus
 def test_learning_rate_and_loss_mask_options_reach_every_stage(tmp_path):
     result, out = _train_tiny(tmp_path, "regressor", "--lr", "2e-4", "--loss-mask", "0.02")
     assert result.exit_code == 0, result.output
-    config = json.loads((out / "training.json").read_text())["config"]
-    assert config["loss_mask_threshold_n"] == 0.02
+    report = json.loads((out / "training.json").read_text())
+    config = report["config"]
+    assert config["loss_mask_threshold_n"] == 0.02 and report["regressor"]["lr"] == 2e-4
     assert {config[f"{s}_budget"]["lr"] for s in ("regressor", "vae", "ldm", "finetune")} == {
         2e-4
     }
