@@ -134,7 +134,9 @@ def test_the_shipped_model_card_is_the_one_its_training_report_renders():
     report = json.loads(weights.joinpath("training.json").read_text())
     card = weights.joinpath("MODEL_CARD.md").read_text()
     assert card == model_card(report)
-    assert "## The LDM refines the regressor (these are the shipped vae and ldm)" in card
+    assert "## The LDM refines the regressor (superseded" in card
+    assert "tight loss mask (these are the shipped regressor, vae and ldm)" in card
+    assert report["remasked"]["loss_mask_threshold_n"] == 0.02
 
 
 def test_mesh_mix_drops_only_the_sensor_degradations_and_unknown_mixes_are_refused(tmp_path):
