@@ -8,6 +8,7 @@ from typing import Annotated
 import typer
 
 from app.cli import app
+from pipeline.enhance.config import EnhanceConfig
 
 
 @app.command("enhance-mesh")
@@ -66,7 +67,7 @@ def enhance_mesh_command(
     gain: Annotated[
         float,
         typer.Option("--gain", help="Share of the networks' depth correction followed (0, 2]."),
-    ] = 0.1,
+    ] = EnhanceConfig.correction_gain,
     min_noise_ratio: Annotated[
         float,
         typer.Option(
