@@ -155,14 +155,8 @@ def _continuation_lines(
         *([f"- {continued['inference_note']}"] if continued.get("inference_note") else []),
         f"- pairs: {continued['train_pairs']} training, {continued['validation_pairs']} "
         "validation, same meshes and split as above",
-        "",
-        "| stage | steps | peak lr | training time (min) | final loss |",
-        "| --- | --- | --- | --- | --- |",
+        *_stage_table(continued),
     ]
-    for stage in ("regressor", "finetune"):
-        r = continued[stage]
-        lines.append(f"| {stage} | {r['steps']} | {r['lr']} | {r['train_seconds'] / 60:.1f} | "
-                     f"{round(r['final_loss'], 4)} |")
     lines += ["", "Validation on the new pre-smoothing, before and after (as above):", "",
               "| stage | method | RMSE before | RMSE after | edge before | edge after |",
               "| --- | --- | --- | --- | --- | --- |"]
@@ -240,14 +234,8 @@ def _remasked_lines(remasked: dict | None) -> list[str]:
         "(`TrainConfig.loss_mask_threshold_n`; 0.05 above): at 0.05 a few pixels where an input "
         "sees another surface carried about 40 % of the squared loss",
         *([f"- {remasked['note']}"] if remasked.get("note") else []),
-        "",
-        "| stage | steps | peak lr | training time (min) | final loss |",
-        "| --- | --- | --- | --- | --- |",
+        *_stage_table(remasked),
     ]
-    for stage in ("regressor", "finetune"):
-        r = remasked[stage]
-        lines.append(f"| {stage} | {r['steps']} | {r['lr']} | {r['train_seconds'] / 60:.1f} | "
-                     f"{r['final_loss']:.4f} |")
     v = remasked["finetune"]["validation"]
     lines += [
         "",
@@ -262,4 +250,15 @@ def _remasked_lines(remasked: dict | None) -> list[str]:
               f"{x['normal_rmse_permille']:.3f} | {x['bulk_rmse_permille']:.3f} | "
               f"{x['bulk_normal_rmse_permille']:.3f} |"
               for k, x in v.items() if isinstance(x, dict)]
+    return lines
+
+
+def _stage_table(run: dict) -> list[str]:
+    """The steps, peak learning rate, time and final loss of a later run's two stages."""
+    lines = ["", "| stage | steps | peak lr | training time (min) | final loss |",
+             "| --- | --- | --- | --- | --- |"]
+    for stage in ("regressor", "finetune"):
+        r = run[stage]
+        lines.append(f"| {stage} | {r['steps']} | {r['lr']} | {r['train_seconds'] / 60:.1f} | "
+                     f"{round(r['final_loss'], 4)} |")
     return lines
