@@ -77,9 +77,9 @@ MIXES: dict[str, dict[str, Any]] = {
 """Degradation mixes by name. `full`: every degradation the issue names. `mesh`: only what a
 mesh's renders carry (vertex noise along normals, near-clean surfaces, colour), the input of
 the enhance stage, which renders a mesh: sensor noise, holes and resampling never reach it.
-Fine-tuning the shipped networks on `mesh` cut their depth error, in the mesh update's
-weighting too, but left the meshes where they were (README, Enhancement), so they keep
-`full`."""
+With the 0.05 loss mask, fine-tuning on `mesh` cut the depth error but left the meshes where
+they were; with the tight mask (`TrainConfig.loss_mask_threshold_n` 0.02) it improved them,
+and the shipped regressor and LDM were last trained on `mesh` (README, Enhancement)."""
 
 
 def with_mix(config: DataConfig, mix: str) -> DataConfig:
@@ -353,8 +353,8 @@ def _presmoothed(noisy: TriangleMesh, config: DataConfig) -> TriangleMesh:
 
 
 SAME_SURFACE_N = 0.05
-"""`same_surface_mask`'s default threshold (normalised depth): what the shipped networks were
-trained and scored with."""
+"""`same_surface_mask`'s default threshold (normalised depth): the validation scores' and
+the default loss mask's (the earlier weights were trained with it)."""
 BULK_SURFACE_N = 0.02
 """A tighter threshold, the bulk of the surface. At 0.05 some 0.04 % of the validation pixels
 are still another surface in one input (the base off by 37 per mille RMS there); they made

@@ -111,8 +111,9 @@ class TrainConfig:
     loss_mask_threshold_n: float = SAME_SURFACE_N
     """Pixels where an input is further than this (normalised depth) from the clean render
     are left out of the losses (`same_surface_mask`): another surface is seen there. The
-    shipped networks were trained at 0.05; `BULK_SURFACE_N` (0.02) leaves out the rest of
-    those pixels, which at 0.05 still carried about 40 % of the squared loss."""
+    default, 0.05, is what the earlier weights were trained with; `BULK_SURFACE_N` (0.02),
+    which the shipped weights were last trained with (`--loss-mask 0.02`), leaves out the rest
+    of those pixels, which at 0.05 still carried about 40 % of the squared loss."""
     ldm_refines_regressor: bool = True
     """The VAE, LDM and fine-tuning stages train on the regressor's estimate in place of the
     base depth (`LDMModels.refines`), so the LDM learns what the regressor leaves; their
@@ -176,40 +177,39 @@ CONFIGS: dict[str, TrainConfig] = {
 }
 
 
+def _each_budget(config: TrainConfig, change: Callable[[StageBudget], StageBudget]) -> TrainConfig:
+    """`config` with `change` applied to every network stage's budget (the selector has its
+    own config)."""
+    return replace(
+        config,
+        regressor_budget=change(config.regressor_budget),
+        vae_budget=change(config.vae_budget),
+        ldm_budget=change(config.ldm_budget),
+        finetune_budget=change(config.finetune_budget),
+    )
+
+
 def scaled(config: TrainConfig, factor: float) -> TrainConfig:
     """The same configuration with every stage's step and time budget multiplied by `factor`."""
     if factor <= 0:
         raise ValueError(f"budget scale must be > 0, got {factor}")
-
-    def sc(b: StageBudget) -> StageBudget:
-        return replace(b, steps=max(1, int(b.steps * factor)), minutes=b.minutes * factor)
-
     selector = replace(config.selector, steps=max(1, int(config.selector.steps * factor)),
                        minutes=config.selector.minutes * factor)
-    return replace(
-        config,
-        selector=selector,
-        regressor_budget=sc(config.regressor_budget),
-        vae_budget=sc(config.vae_budget),
-        ldm_budget=sc(config.ldm_budget),
-        finetune_budget=sc(config.finetune_budget),
+    return _each_budget(
+        replace(config, selector=selector),
+        lambda b: replace(b, steps=max(1, int(b.steps * factor)), minutes=b.minutes * factor),
     )
 
 
 def capped(config: TrainConfig, minutes: float) -> TrainConfig:
     """The same configuration with every network stage's wall-clock limit set to `minutes`
     (steps unchanged, so the learning-rate schedule is the step budget's)."""
-    return replace(
-        config,
-        **{f"{s}_budget": replace(getattr(config, f"{s}_budget"), minutes=minutes)
-           for s in ("regressor", "vae", "ldm", "finetune")},
-    )
+    return _each_budget(config, lambda b: replace(b, minutes=minutes))
 
 
 def with_lr(config: TrainConfig, lr: float) -> TrainConfig:
     """The same configuration with every network stage's peak learning rate set to `lr`."""
-    return replace(config, **{f"{s}_budget": replace(getattr(config, f"{s}_budget"), lr=lr)
-                              for s in ("regressor", "vae", "ldm", "finetune")})
+    return _each_budget(config, lambda b: replace(b, lr=lr))
 
 
 class CropSampler:

@@ -35,8 +35,7 @@ def depth_scores(pred: NDArray, pairs: DepthPairs, idx: NDArray[np.int64]) -> di
     update weighs views, over pixels slanted less than its visibility limit."""
     from pipeline.enhance.train import slope_weights
 
-    sums = np.zeros(8)  # sq, n, band sq, band n, normal sq, normal w; bulk sq, bulk n
-    bulk_normal = np.zeros(2)
+    acc = {k: np.zeros(2) for k in ("all", "band", "normal", "bulk", "bulk_normal")}
     res = pairs.clean_n.shape[-1]
     for j, i in enumerate(idx):
         err = pred[j].astype(np.float64) - pairs.clean_n[i]
@@ -45,15 +44,17 @@ def depth_scores(pred: NDArray, pairs: DepthPairs, idx: NDArray[np.int64]) -> di
         band = depth_edge_band(pairs.clean_n[i], pairs.loss_mask[i], 0.02)
         mask = same_surface_mask(pairs, i)
         bulk = same_surface_mask(pairs, i, BULK_SURFACE_N)
-        sums[:6] += [*_sq_n(err, mask), *_sq_n(err, band & mask), *_normal_sq_w(err, cos2_np, mask)]
-        sums[6:] += _sq_n(err, bulk)
-        bulk_normal += _normal_sq_w(err, cos2_np, bulk)
+        acc["all"] += _sq_n(err, mask)
+        acc["band"] += _sq_n(err, band & mask)
+        acc["normal"] += _normal_sq_w(err, cos2_np, mask)
+        acc["bulk"] += _sq_n(err, bulk)
+        acc["bulk_normal"] += _normal_sq_w(err, cos2_np, bulk)
     return {
-        "rmse_permille": _rms_permille(sums[0], sums[1]),
-        "edge_rmse_permille": _rms_permille(sums[2], sums[3]),
-        "normal_rmse_permille": _rms_permille(sums[4], sums[5]),
-        "bulk_rmse_permille": _rms_permille(sums[6], sums[7]),
-        "bulk_normal_rmse_permille": _rms_permille(*bulk_normal),
+        "rmse_permille": _rms_permille(*acc["all"]),
+        "edge_rmse_permille": _rms_permille(*acc["band"]),
+        "normal_rmse_permille": _rms_permille(*acc["normal"]),
+        "bulk_rmse_permille": _rms_permille(*acc["bulk"]),
+        "bulk_normal_rmse_permille": _rms_permille(*acc["bulk_normal"]),
     }
 
 
