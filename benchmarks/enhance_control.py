@@ -35,6 +35,7 @@ from enhance import VERTEX_NOISE_ONLY, network_predictions  # noqa: E402
 
 from app.cli.train import training_pairs, training_sets  # noqa: E402
 from pipeline.enhance import train as tr  # noqa: E402
+from pipeline.enhance import train_config as tc  # noqa: E402
 from pipeline.enhance.data import make_pairs  # noqa: E402
 from pipeline.enhance.inference import load_ldm, load_regressor, regressor_to_bytes  # noqa: E402
 from pipeline.enhance.models.regressor import RefinedRegressor  # noqa: E402
@@ -76,9 +77,9 @@ def main() -> None:
                     help="folder for the control's weights (as regressor.safetensors)")
     args = ap.parse_args()
     device = torch.device("cpu")
-    config = tr.CONFIGS["small"]
+    config = tc.CONFIGS["small"]
     config = replace(config, data=replace(config.data, poses_per_mesh=args.poses),
-                     regressor_budget=tr.StageBudget(args.steps, args.minutes,
+                     regressor_budget=tc.StageBudget(args.steps, args.minutes,
                                                      config.finetune_budget.lr))
     t0 = time.monotonic()
     train_set, val_set = training_sets(args.meshes, 12, args.seed)

@@ -39,13 +39,8 @@ def run(train, val, encode_correction: bool, args) -> dict:
     import torch
 
     from pipeline.enhance.pipelines.depth_ldm import LDMModels
-    from pipeline.enhance.train import (
-        CONFIGS,
-        StageBudget,
-        train_finetune,
-        train_ldm,
-        train_vae,
-    )
+    from pipeline.enhance.train import train_finetune, train_ldm, train_vae
+    from pipeline.enhance.train_config import CONFIGS, StageBudget
     from pipeline.enhance.validate import validate_ldm
 
     small = CONFIGS["small"]

@@ -77,23 +77,26 @@ def train(
     from tqdm import tqdm
 
     from pipeline.enhance import train as tr
+    from pipeline.enhance import train_config as tc
+    from pipeline.enhance import train_loop as tl
     from pipeline.enhance.data import MIXES, with_mix
+    from pipeline.enhance.device import resolve_device
     from pipeline.enhance.inference import ldm_to_bytes, weights_to_bytes
     from pipeline.enhance.pipelines.depth_ldm import LDMModels
     from pipeline.enhance.validate import validate_ldm, validate_regressor
 
-    if config not in tr.CONFIGS:
-        raise ValueError(f"--config: {config!r} is not one of {', '.join(tr.CONFIGS)}")
-    cfg = tr.scaled(tr.CONFIGS[config], budget_scale) if budget_scale != 1.0 else tr.CONFIGS[config]
+    if config not in tc.CONFIGS:
+        raise ValueError(f"--config: {config!r} is not one of {', '.join(tc.CONFIGS)}")
+    cfg = tc.scaled(tc.CONFIGS[config], budget_scale) if budget_scale != 1.0 else tc.CONFIGS[config]
     if poses is not None:
         cfg = replace(cfg, data=replace(cfg.data, poses_per_mesh=poses))
     if mix not in MIXES:
         raise ValueError(f"--mix: {mix!r} is not one of {', '.join(MIXES)}")
     cfg = replace(cfg, data=with_mix(cfg.data, mix))
     if minutes is not None:
-        cfg = tr.capped(cfg, minutes)
+        cfg = tc.capped(cfg, minutes)
     if lr is not None:
-        cfg = tr.with_lr(cfg, lr)
+        cfg = tc.with_lr(cfg, lr)
     if loss_mask is not None:
         cfg = replace(cfg, loss_mask_threshold_n=loss_mask)
     wanted = [s.strip() for s in stages.split(",") if s.strip()]
@@ -108,7 +111,7 @@ def train(
         if {"vae", "ldm"} & set(wanted):
             raise ValueError("--init: leave out the vae and ldm stages (finetune starts from "
                              "the folder's)")
-    dev = tr.resolve_device(device)
+    dev = resolve_device(device)
     device = dev.type
     out.mkdir(parents=True, exist_ok=True)
     (out / "checkpoints").mkdir(exist_ok=True)
@@ -141,11 +144,11 @@ def train(
         path = out / "checkpoints" / f"{stage}.pt"
         state = None
         if resume and path.exists():
-            state = tr.checkpoint_from_bytes(path.read_bytes())
+            state = tl.checkpoint_from_bytes(path.read_bytes())
 
         def save(ck: dict) -> None:
             tmp = path.with_suffix(".tmp")
-            tmp.write_bytes(tr.checkpoint_to_bytes(ck))
+            tmp.write_bytes(tl.checkpoint_to_bytes(ck))
             tmp.replace(path)  # atomic: an interrupted write never spoils the last checkpoint
 
         return state, save

@@ -150,7 +150,7 @@ def enhance_mesh(
         return baselines.adaptive_twicing(mesh, baselines.AdaptiveTwicingConfig())
     if config.method == "bilateral":
         return baselines.bilateral_denoise(mesh, config.iterations)
-    from pipeline.enhance.train import resolve_device
+    from pipeline.enhance.device import resolve_device
 
     device = resolve_device(config.device).type
     if config.method == "selector":

@@ -213,9 +213,9 @@ def run_network(
     """
     import torch
 
+    from pipeline.enhance.device import resolve_device
     from pipeline.enhance.models.common import side_inputs
     from pipeline.enhance.pipelines.depth_ldm import enhance_depth_ldm
-    from pipeline.enhance.train import resolve_device
 
     device = resolve_device(config.device)
     d = torch.from_numpy(base.depth_n[:, None]).to(device)

@@ -33,7 +33,7 @@ def depth_scores(pred: NDArray, pairs: DepthPairs, idx: NDArray[np.int64]) -> di
     normal RMSE is the error as the mesh update sees it: each pixel's depth error times the
     cos of the clean surface's slant (its move along the normal), weighted by cos² as the
     update weighs views, over pixels slanted less than its visibility limit."""
-    from pipeline.enhance.train import slope_weights
+    from pipeline.enhance.train_loop import slope_weights
 
     acc = {k: np.zeros(2) for k in ("all", "band", "normal", "bulk", "bulk_normal")}
     res = pairs.clean_n.shape[-1]

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from pipeline.enhance.data import DepthPairs
 from pipeline.mesh import TriangleMesh
 
 
@@ -33,3 +34,14 @@ def radial_rms_m(mesh: TriangleMesh, radius_m: float = 0.5) -> float:
     """RMS distance of the vertices to the ideal sphere."""
     r = np.linalg.norm(mesh.vertices_m, axis=1)
     return float(np.sqrt(np.mean((r - radius_m) ** 2)))
+
+
+def ramp_pairs(n: int = 3, side: int = 40) -> DepthPairs:
+    """Pairs whose base depth is a unique ramp (each window identifiable by its minimum) and
+    whose clean depth is the base plus 0.01; the mask covers the left 70 % of each image."""
+    base = (np.arange(n * side * side, dtype=np.float32) / (n * side * side)).reshape(n, side, side)
+    valid = np.ones_like(base, bool)
+    mask = np.zeros_like(valid)
+    mask[:, :, : int(0.7 * side)] = True
+    return DepthPairs(base, valid, base.copy(), base + 0.01, mask, np.zeros_like(valid),
+                      ("ramp",) * n)

@@ -5,13 +5,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import torch
-from hypothesis import given, settings
-from hypothesis import strategies as st
 
 from pipeline.enhance import EnhanceConfig, enhance_mesh
 from pipeline.enhance.data import (
     DataConfig,
-    DepthPairs,
     make_pairs,
     procedural_meshes,
     same_surface_mask,
@@ -23,18 +20,10 @@ from pipeline.enhance.pipelines.depth_ldm import (
     latent_shape,
     sample_depth,
 )
-from pipeline.enhance.train import (
-    CONFIGS,
-    CropSampler,
-    StageBudget,
-    checkpoint_from_bytes,
-    checkpoint_to_bytes,
-    train_finetune,
-    train_ldm,
-    train_regressor,
-    train_vae,
-)
-from tests.pipeline.enhance.conftest import sphere
+from pipeline.enhance.train import train_finetune, train_ldm, train_regressor, train_vae
+from pipeline.enhance.train_config import CONFIGS, StageBudget
+from pipeline.enhance.train_loop import checkpoint_from_bytes, checkpoint_to_bytes
+from tests.pipeline.enhance.conftest import ramp_pairs, sphere
 
 TINY = CONFIGS["tiny"]
 
@@ -235,37 +224,8 @@ def test_coloured_poses_give_edges_and_uncoloured_none():
     assert not (coloured.edges & ~coloured.degraded_valid).any()  # only on the surface
 
 
-def _ramp_pairs(n: int = 3, side: int = 40) -> DepthPairs:
-    """Pairs whose base depth is a unique ramp (each window identifiable by its minimum) and
-    whose clean depth is the base plus 0.01; the mask covers the left 70 % of each image."""
-    base = (np.arange(n * side * side, dtype=np.float32) / (n * side * side)).reshape(n, side, side)
-    valid = np.ones_like(base, bool)
-    mask = np.zeros_like(valid)
-    mask[:, :, : int(0.7 * side)] = True
-    return DepthPairs(base, valid, base.copy(), base + 0.01, mask, np.zeros_like(valid),
-                      ("ramp",) * n)
-
-
-def test_crops_are_flipped_or_transposed_windows_of_one_pair():
-    pairs = _ramp_pairs()
-    sampler = CropSampler(pairs, crop=8, seed=3)
-    deg, valid, clean, mask, side = sampler.batch(64, torch.device("cpu"))
-    assert deg.shape == (64, 1, 8, 8) and side.shape == (64, 2, 8, 8)
-    assert torch.allclose(clean - deg, torch.full_like(deg, 0.01), atol=1e-6)
-    seen = set()
-    for crop, m in zip(deg[:, 0].numpy(), mask[:, 0].numpy(), strict=True):
-        i, y, x = (int(a[0]) for a in np.nonzero(pairs.degraded_n == crop.min()))
-        window = pairs.degraded_n[i, y : y + 8, x : x + 8]
-        variants = [np.rot90(w, k) for w in (window, window.T) for k in range(4)]
-        matches = [k for k, v in enumerate(variants) if np.array_equal(v, crop)]
-        assert matches, "a crop is no dihedral transform of a window"
-        seen.add(matches[0])
-        assert m.mean() >= 0.2  # crops mostly off the mask are redrawn
-    assert len(seen) == 8  # every flip/transpose combination occurs
-
-
 def test_surface_mask_drops_pixels_where_either_input_sees_another_surface():
-    pairs = _ramp_pairs(1, 8)
+    pairs = ramp_pairs(1, 8)
     far = replace(pairs, noisy_n=pairs.noisy_n.copy(), degraded_n=pairs.degraded_n.copy())
     far.noisy_n[0, 0, 0] += 0.2  # the noisy render sees another surface here
     far.degraded_n[0, 1, 1] += 0.2  # and the base here
@@ -273,18 +233,6 @@ def test_surface_mask_drops_pixels_where_either_input_sees_another_surface():
     mask = same_surface_mask(far)
     assert not mask[0, 0, 0] and not mask[0, 1, 1] and mask[0, 2, 2]
     assert mask.sum() == pairs.loss_mask.sum() - 2
-
-
-def test_a_tighter_surface_mask_drops_pixels_the_default_keeps_and_the_sampler_uses_it():
-    pairs = _ramp_pairs(1, 16)
-    near = replace(pairs, degraded_n=pairs.degraded_n.copy())
-    near.degraded_n[0, 3, 3] -= 0.03  # 0.04 from the clean render: kept at 0.05, not at 0.02
-    default, tight = same_surface_mask(near), same_surface_mask(near, threshold_n=0.02)
-    assert default[0, 3, 3] and not tight[0, 3, 3]
-    assert tight.sum() == default.sum() - 1
-    sampler = CropSampler(near, crop=16, seed=0, mask_threshold_n=0.02)
-    _, _, _, mask, _ = sampler.batch(8, torch.device("cpu"))
-    assert mask.sum() == 8 * tight.sum()  # the whole image is the one crop, in some flip
 
 
 def test_bulk_scores_leave_out_what_the_tight_mask_drops(pairs):
@@ -363,25 +311,6 @@ def test_a_refining_ldm_round_trips_through_its_bytes_with_its_regressor(pairs):
                        enhance_depth_ldm(again, d, v, 2, 0.5, 3))
     plain = load_ldm(vae_bytes, ldm_to_bytes(replace(models, refines=None), unet_cfg))
     assert plain.refines is None
-
-
-@settings(max_examples=25, deadline=None)
-@given(
-    a=st.floats(-3.0, 3.0), b=st.floats(-3.0, 3.0), offset=st.floats(-1.0, 1.0),
-    power=st.sampled_from([0, 2, 4]),
-)
-def test_slope_weights_are_the_cos_of_a_planes_slant(a, b, offset, power):
-    """An orthographic render of the plane z = a x + b y (x, y, z in image sides, the unit of
-    normalised depth): every pixel off the border weighs (1 + a² + b²)^(-power/2), the
-    power of the cos between its normal and the view."""
-    from pipeline.enhance.train import slope_weights
-
-    res = 32
-    t = torch.arange(res, dtype=torch.float64) / res
-    plane = offset + a * t[None, :] + b * t[:, None]
-    w = slope_weights(plane[None, None], res, power)[0, 0, 1:-1, 1:-1]
-    expected = (1.0 + a * a + b * b) ** (-power / 2)
-    assert torch.allclose(w, torch.full_like(w, expected), rtol=1e-9)
 
 
 def test_depth_scores_normal_error_discounts_slanted_pixels(pairs):
