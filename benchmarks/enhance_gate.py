@@ -65,7 +65,8 @@ def reconstruction(meshes: Path) -> dict:
     from pipeline.io.capture_io import open_capture
     from pipeline.io.mesh_io import read_mesh
     from pipeline.metrics import MetricsConfig, compare
-    from pipeline.reconstruct import config_from_options, posed_cameras, reconstruct
+    from pipeline.reconstruct import posed_cameras, reconstruct
+    from pipeline.reconstruct_config import config_from_options
 
     with tempfile.TemporaryDirectory() as tmp:
         # As the README's reconstruction figures: the CLI's synthetic capture of the bunny.

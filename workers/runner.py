@@ -218,7 +218,7 @@ def run_step(ctx: WorkerContext, job_id: str, index: int, task_id: str | None,
 
 
 def _job_config(ctx: WorkerContext, job: JobView) -> tuple[Any, str]:
-    from pipeline.reconstruct import config_from_options, config_hash
+    from pipeline.reconstruct_config import config_from_options, config_hash
 
     options = _pipeline_options(job.options)
     if job.options.get("calibration_capture_id"):
@@ -255,7 +255,7 @@ def calibrate(ctx: WorkerContext, job: JobView, index: int, count: int) -> bool:
     from pipeline.calibration import calibrate as find_poses
     from pipeline.io.capture_io import open_capture
     from pipeline.io.rig_io import rig_to_json
-    from pipeline.reconstruct import replace_section
+    from pipeline.reconstruct_config import replace_section
 
     if ctx.store.rig(job.id) is not None:
         return False

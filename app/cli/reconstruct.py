@@ -64,13 +64,9 @@ def reconstruct(
 
     from pipeline.io.capture_io import open_capture
     from pipeline.io.gltf_io import write_mesh
-    from pipeline.reconstruct import (
-        check_capture,
-        config_from_options,
-        planned_stages,
-        posed_cameras,
-    )
+    from pipeline.reconstruct import check_capture, planned_stages, posed_cameras
     from pipeline.reconstruct import reconstruct as run_pipeline
+    from pipeline.reconstruct_config import config_from_options
 
     if out.suffix.lower() not in (".glb", ".ply"):
         raise ValueError(f"--out: {out} must end in .glb or .ply")

@@ -9,15 +9,8 @@ import pytest
 from pipeline.io.capture_io import open_capture, write_capture
 from pipeline.mesh import TriangleMesh
 from pipeline.metrics import MetricsConfig, compare
-from pipeline.reconstruct import (
-    ReconstructConfig,
-    config_from_options,
-    config_hash,
-    mesh_from_artifacts,
-    planned_stages,
-    reconstruct,
-    run_stage,
-)
+from pipeline.reconstruct import mesh_from_artifacts, planned_stages, reconstruct, run_stage
+from pipeline.reconstruct_config import ReconstructConfig, config_from_options
 from tests.pipeline.sphere_scene import (
     distance_to_sphere,
     ring_cameras,
@@ -86,34 +79,6 @@ def test_stage_by_stage_with_merged_artifacts_gives_the_same_mesh(
     assert abs(mesh.face_count - whole.face_count) <= 0.01 * whole.face_count
     figures = compare(mesh, whole, [], MetricsConfig(sample_count=5000))
     assert figures["result_to_gt"]["p95_m"] < 2e-4
-
-
-def test_options_become_a_validated_config() -> None:
-    config = config_from_options({"enhance": True, "target_edge_length_m": 0.02,
-                                  "voxel_size_m": 0.01, "frame_index": 0,
-                                  "meshing": {"poisson_depth": 8}})
-    assert config.enhance and config.target_edge_length_m == 0.02
-    assert config.voxel_refine.voxel_size_m == 0.01 and config.meshing.poisson_depth == 8
-    assert config_hash(config) == config_hash(dataclasses.replace(config))
-    assert config_hash(config) != config_hash(ReconstructConfig())
-    assert config_from_options({}) == ReconstructConfig()
-
-
-@pytest.mark.parametrize("options, field", [
-    ({"bogus": 1}, "bogus"),
-    ({"target_edge_length_m": -1.0}, "target_edge_length_m"),
-    ({"target_edge_length_m": "big"}, "target_edge_length_m"),
-    ({"voxel_size_m": 0}, "voxel_size_m"),
-    ({"frame_index": -1}, "frame_index"),
-    ({"enhance": "yes"}, "enhance"),
-    ({"meshing": {"poisson_depth": 99}}, "meshing"),
-    ({"meshing": {"nope": 1}}, "meshing.nope"),
-    ({"world_from_depth": {"cam0": [[1, 0], [0, 1]]}}, "world_from_depth.cam0"),
-    ({"world_from_depth": {"cam0": np.diag([2.0, 1, 1, 1]).tolist()}}, "world_from_depth.cam0"),
-])
-def test_bad_options_are_value_errors_naming_the_option(options: dict, field: str) -> None:
-    with pytest.raises(ValueError, match=field.replace(".", r"\.")):
-        config_from_options(options)
 
 
 def test_a_rig_overrides_the_capture_poses(sphere_capture: Path, tmp_path: Path) -> None:

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import dataclasses
 
-from pipeline.reconstruct import STAGES, ReconstructConfig, config_from_options
+from pipeline.reconstruct import STAGES
+from pipeline.reconstruct_config import ReconstructConfig, config_from_options
 from workers.runner import SECTION_FIRST_STAGE, plan_stages, stage_keys
 
 
