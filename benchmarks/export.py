@@ -21,7 +21,8 @@ from scipy.spatial import cKDTree
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pipeline.io.gltf_io import DracoConfig, decode_glb, encode_glb  # noqa: E402
+from pipeline.io.gltf_io import DracoConfig, encode_glb  # noqa: E402
+from pipeline.io.gltf_read import decode_glb  # noqa: E402
 from pipeline.io.mesh_io import read_mesh  # noqa: E402
 from pipeline.mesh import TriangleMesh, vertex_normals  # noqa: E402
 

@@ -175,7 +175,7 @@ def _summary(figures: dict[str, Any]) -> dict[str, float]:
 
 
 def run_volumesh(folder: Path, cpus: int) -> dict[str, Any]:
-    from pipeline.io.gltf_io import decode_glb
+    from pipeline.io.gltf_read import decode_glb
 
     out, report = folder / "volumesh.glb", folder / "report.json"
     measured = run_measured([sys.executable, "-c", "from app.cli import main; main()",

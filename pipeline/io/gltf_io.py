@@ -1,4 +1,4 @@
-"""glTF 2.0 binary (GLB) export, optionally Draco-compressed, and reading it back.
+"""glTF 2.0 binary (GLB) export, optionally Draco-compressed (reading it back: `gltf_read`).
 
 The GLB is written by hand (JSON chunk + BIN chunk): the container is small, and this keeps
 full control over the fields the Khronos validator is strict about (no ``byteOffset`` on
@@ -20,21 +20,22 @@ import DracoPy
 import numpy as np
 from numpy.typing import NDArray
 
+from pipeline.io.glb_format import (
+    ARRAY_BUFFER,
+    CHUNK_BIN,
+    CHUNK_JSON,
+    DRACO_EXTENSION,
+    ELEMENT_ARRAY_BUFFER,
+    FLOAT,
+    GENERATOR,
+    GLB_MAGIC,
+    TRIANGLES,
+    UBYTE,
+    UINT,
+    USHORT,
+)
 from pipeline.io.mesh_io import write_ply
 from pipeline.mesh import TriangleMesh, vertex_normals
-
-DRACO_EXTENSION = "KHR_draco_mesh_compression"
-GENERATOR = "volumesh"
-
-_GLB_MAGIC = 0x46546C67  # "glTF"
-_CHUNK_JSON = 0x4E4F534A
-_CHUNK_BIN = 0x004E4942
-_FLOAT, _UBYTE, _USHORT, _UINT = 5126, 5121, 5123, 5125
-_ARRAY_BUFFER, _ELEMENT_ARRAY_BUFFER = 34962, 34963
-_TRIANGLES = 4
-_COMPONENTS = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4}
-_DTYPES = {_FLOAT: np.float32, _UBYTE: np.uint8, _USHORT: np.uint16, _UINT: np.uint32,
-           5120: np.int8, 5122: np.int16}
 
 
 @dataclass(frozen=True)
@@ -137,27 +138,6 @@ def write_mesh(
                          "use .glb or .ply")
 
 
-def decode_glb(data: bytes) -> TriangleMesh:
-    """Reads a GLB with triangle primitives (Draco or plain) into one mesh.
-
-    Node transforms are ignored (our files have none); all triangle primitives of all meshes
-    are concatenated. Colours come back as uint8 sRGB, normals as float32.
-    """
-    doc, binary = _unpack_glb(data)
-    try:
-        parts = [
-            _read_primitive(doc, binary, prim)
-            for mesh in doc.get("meshes", [])
-            for prim in mesh.get("primitives", [])
-            if prim.get("mode", _TRIANGLES) == _TRIANGLES
-        ]
-    except (KeyError, IndexError, TypeError, AttributeError) as exc:
-        raise ValueError(f"GLB: malformed glTF JSON ({type(exc).__name__}: {exc})") from None
-    if not parts:
-        raise ValueError("GLB holds no triangle primitive")
-    return _concatenate(parts)
-
-
 def simplify(mesh: TriangleMesh, target_faces: int) -> TriangleMesh:
     """A level-of-detail variant with about ``target_faces`` faces (quadric decimation).
 
@@ -190,9 +170,6 @@ def simplify(mesh: TriangleMesh, target_faces: int) -> TriangleMesh:
     )
 
 
-# --- writing -------------------------------------------------------------------------------
-
-
 def _check_mesh(mesh: TriangleMesh) -> None:
     vertices, faces = np.asarray(mesh.vertices_m), np.asarray(mesh.faces)
     if vertices.ndim != 2 or vertices.shape[1] != 3 or len(vertices) == 0:
@@ -215,7 +192,7 @@ def _check_mesh(mesh: TriangleMesh) -> None:
 
 
 def _index_type(vertex_count: int) -> tuple[int, type[np.unsignedinteger[Any]]]:
-    return (_USHORT, np.uint16) if vertex_count <= 0xFFFF else (_UINT, np.uint32)
+    return (USHORT, np.uint16) if vertex_count <= 0xFFFF else (UINT, np.uint32)
 
 
 def _plain_primitive(
@@ -226,23 +203,23 @@ def _plain_primitive(
     index_type, index_dtype = _index_type(count)
     # (bytes, target, byteStride or None)
     blocks: list[tuple[bytes, int, int | None]] = [
-        (positions.tobytes(), _ARRAY_BUFFER, None),
-        (np.ascontiguousarray(normals, dtype=np.float32).tobytes(), _ARRAY_BUFFER, None),
+        (positions.tobytes(), ARRAY_BUFFER, None),
+        (np.ascontiguousarray(normals, dtype=np.float32).tobytes(), ARRAY_BUFFER, None),
     ]
     accessors: list[dict[str, Any]] = [
-        _accessor(_FLOAT, count, "VEC3", positions.min(axis=0), positions.max(axis=0)),
-        _accessor(_FLOAT, count, "VEC3"),
+        _accessor(FLOAT, count, "VEC3", positions.min(axis=0), positions.max(axis=0)),
+        _accessor(FLOAT, count, "VEC3"),
     ]
     attributes = {"POSITION": 0, "NORMAL": 1}
     if mesh.vertex_colors is not None:
         # Vertex attribute strides must be multiples of 4: pad RGB to 4 bytes per vertex.
         padded = np.zeros((count, 4), dtype=np.uint8)
         padded[:, :3] = mesh.vertex_colors
-        blocks.append((padded.tobytes(), _ARRAY_BUFFER, 4))
-        accessors.append({**_accessor(_UBYTE, count, "VEC3"), "normalized": True})
+        blocks.append((padded.tobytes(), ARRAY_BUFFER, 4))
+        accessors.append({**_accessor(UBYTE, count, "VEC3"), "normalized": True})
         attributes["COLOR_0"] = len(accessors) - 1
     blocks.append((np.ascontiguousarray(mesh.faces, dtype=index_dtype).tobytes(),
-                   _ELEMENT_ARRAY_BUFFER, None))
+                   ELEMENT_ARRAY_BUFFER, None))
     accessors.append(_accessor(index_type, mesh.face_count * 3, "SCALAR"))
     binary = bytearray()
     views = []
@@ -257,7 +234,7 @@ def _plain_primitive(
         binary += block
     binary += b"\0" * (-len(binary) % 4)
     primitive = {"attributes": attributes, "indices": len(accessors) - 1, "material": 0,
-                 "mode": _TRIANGLES}
+                 "mode": TRIANGLES}
     doc = {"accessors": accessors, "bufferViews": views, "meshes": [{"primitives": [primitive]}]}
     return doc, bytes(binary)
 
@@ -291,13 +268,13 @@ def _draco_primitive(
     ids = {int(a["attribute_type"]): int(a["unique_id"]) for a in decoded.attributes}
     index_type, _ = _index_type(count)
     accessors = [
-        _accessor(_FLOAT, count, "VEC3", points.min(axis=0), points.max(axis=0)),
-        _accessor(_FLOAT, count, "VEC3"),
+        _accessor(FLOAT, count, "VEC3", points.min(axis=0), points.max(axis=0)),
+        _accessor(FLOAT, count, "VEC3"),
     ]
     attributes = {"POSITION": 0, "NORMAL": 1}
     draco_ids = {"POSITION": ids[_DRACO_POSITION], "NORMAL": ids[_DRACO_NORMAL]}
     if colors is not None:
-        accessors.append({**_accessor(_UBYTE, count, "VEC3"), "normalized": True})
+        accessors.append({**_accessor(UBYTE, count, "VEC3"), "normalized": True})
         attributes["COLOR_0"] = 2
         draco_ids["COLOR_0"] = ids[_DRACO_COLOR]
     accessors.append(_accessor(index_type, int(np.asarray(decoded.faces).size), "SCALAR"))
@@ -305,7 +282,7 @@ def _draco_primitive(
         "attributes": attributes,
         "indices": len(accessors) - 1,
         "material": 0,
-        "mode": _TRIANGLES,
+        "mode": TRIANGLES,
         "extensions": {DRACO_EXTENSION: {"bufferView": 0, "attributes": draco_ids}},
     }
     binary = encoded + b"\0" * (-len(encoded) % 4)
@@ -344,9 +321,9 @@ def _pack_glb(doc: dict[str, Any], binary: bytes) -> bytes:
     binary += b"\0" * (-len(binary) % 4)
     total = 12 + 8 + len(text) + 8 + len(binary)
     return b"".join([
-        struct.pack("<III", _GLB_MAGIC, 2, total),
-        struct.pack("<II", len(text), _CHUNK_JSON), text,
-        struct.pack("<II", len(binary), _CHUNK_BIN), binary,
+        struct.pack("<III", GLB_MAGIC, 2, total),
+        struct.pack("<II", len(text), CHUNK_JSON), text,
+        struct.pack("<II", len(binary), CHUNK_BIN), binary,
     ])
 
 
@@ -360,131 +337,3 @@ def _write_atomically(path: Path, data: bytes) -> None:
     except BaseException:
         Path(temp_name).unlink(missing_ok=True)
         raise
-
-
-# --- reading -------------------------------------------------------------------------------
-
-
-def _unpack_glb(data: bytes) -> tuple[dict[str, Any], bytes]:
-    if len(data) < 20:
-        raise ValueError("GLB too short")
-    magic, version, length = struct.unpack_from("<III", data, 0)
-    if magic != _GLB_MAGIC or version != 2:
-        raise ValueError("GLB: not a glTF 2.0 binary (bad magic or version)")
-    if length > len(data):
-        raise ValueError(f"GLB truncated: header says {length} bytes, got {len(data)}")
-    doc: dict[str, Any] | None = None
-    binary = b""
-    offset = 12
-    while offset + 8 <= length:
-        chunk_length, chunk_type = struct.unpack_from("<II", data, offset)
-        chunk = data[offset + 8: offset + 8 + chunk_length]
-        if len(chunk) != chunk_length:
-            raise ValueError("GLB chunk runs past the end of the file")
-        if chunk_type == _CHUNK_JSON and doc is None:
-            try:
-                doc = json.loads(chunk.decode("utf-8"))
-            except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-                raise ValueError(f"GLB JSON chunk is not valid JSON: {exc}") from exc
-        elif chunk_type == _CHUNK_BIN and not binary:
-            binary = chunk
-        offset += 8 + chunk_length
-    if not isinstance(doc, dict):
-        raise ValueError("GLB has no JSON chunk")
-    return doc, binary
-
-
-def _buffer_view_bytes(doc: dict[str, Any], binary: bytes, index: int) -> tuple[bytes, int | None]:
-    view = doc["bufferViews"][index]
-    if view.get("buffer", 0) != 0:
-        raise ValueError("GLB: only the file's own buffer (0) is supported")
-    start = view.get("byteOffset", 0)
-    return binary[start: start + view["byteLength"]], view.get("byteStride")
-
-
-def _read_accessor(doc: dict[str, Any], binary: bytes, index: int) -> NDArray[Any]:
-    accessor = doc["accessors"][index]
-    dtype = np.dtype(_DTYPES[accessor["componentType"]])
-    components = _COMPONENTS[accessor["type"]]
-    count = accessor["count"]
-    if "bufferView" not in accessor:
-        raise ValueError(f"GLB: accessor {index} has no bufferView (sparse/empty unsupported)")
-    view, stride = _buffer_view_bytes(doc, binary, accessor["bufferView"])
-    element = dtype.itemsize * components
-    stride = stride or element
-    start = accessor.get("byteOffset", 0)
-    raw = np.frombuffer(view, dtype=np.uint8)
-    if start + stride * (count - 1) + element > len(raw):
-        raise ValueError(f"GLB: accessor {index} runs past its bufferView")
-    rows = np.lib.stride_tricks.as_strided(raw[start:], shape=(count, element),
-                                           strides=(stride, 1))
-    return np.ascontiguousarray(rows).view(dtype).reshape(count, components)
-
-
-def _to_uint8_colors(values: NDArray[Any], accessor: dict[str, Any]) -> NDArray[np.uint8]:
-    rgb = values[:, :3]
-    if rgb.dtype == np.uint8:
-        return np.asarray(rgb, dtype=np.uint8)
-    if rgb.dtype == np.uint16:
-        return np.rint(rgb / 257.0).astype(np.uint8)
-    if accessor.get("normalized", False) or rgb.dtype == np.float32:
-        return np.clip(np.rint(rgb.astype(np.float64) * 255.0), 0, 255).astype(np.uint8)
-    raise ValueError(f"GLB: unsupported COLOR_0 component type {accessor['componentType']}")
-
-
-def _read_primitive(doc: dict[str, Any], binary: bytes, prim: dict[str, Any]) -> TriangleMesh:
-    attributes = prim.get("attributes", {})
-    if "POSITION" not in attributes:
-        raise ValueError("GLB: a primitive has no POSITION")
-    draco = prim.get("extensions", {}).get(DRACO_EXTENSION)
-    if draco is not None:
-        view, _ = _buffer_view_bytes(doc, binary, draco["bufferView"])
-        try:
-            decoded = DracoPy.decode(view)
-        except Exception as exc:  # DracoPy raises its own failure types
-            raise ValueError(f"GLB: Draco data cannot be decoded ({exc})") from None
-
-        def attribute(name: str) -> NDArray[Any] | None:
-            if name not in draco["attributes"]:
-                return None
-            found = decoded.get_attribute_by_unique_id(draco["attributes"][name])
-            return None if found is None else np.asarray(found["data"])
-
-        positions = np.asarray(decoded.points)
-        faces = np.asarray(decoded.faces).reshape(-1, 3)
-        normals, colors = attribute("NORMAL"), attribute("COLOR_0")
-    else:
-        positions = _read_accessor(doc, binary, attributes["POSITION"])
-        if "indices" in prim:
-            faces = _read_accessor(doc, binary, prim["indices"]).reshape(-1, 3)
-        else:
-            faces = np.arange(len(positions)).reshape(-1, 3)
-        normals = (_read_accessor(doc, binary, attributes["NORMAL"])
-                   if "NORMAL" in attributes else None)
-        colors = (_read_accessor(doc, binary, attributes["COLOR_0"])
-                  if "COLOR_0" in attributes else None)
-    if colors is not None:
-        colors = _to_uint8_colors(colors, doc["accessors"][attributes["COLOR_0"]])
-    return TriangleMesh(
-        vertices_m=np.asarray(positions, dtype=np.float64),
-        faces=np.asarray(faces, dtype=np.int32),
-        vertex_colors=colors,
-        vertex_normals=None if normals is None else np.asarray(normals, dtype=np.float32),
-    )
-
-
-def _concatenate(parts: list[TriangleMesh]) -> TriangleMesh:
-    if len(parts) == 1:
-        return parts[0]
-    offsets = np.cumsum([0] + [p.vertex_count for p in parts[:-1]])
-    keep_colors = all(p.vertex_colors is not None for p in parts)
-    keep_normals = all(p.vertex_normals is not None for p in parts)
-    return TriangleMesh(
-        vertices_m=np.concatenate([p.vertices_m for p in parts]),
-        faces=np.concatenate([p.faces + o for p, o in zip(parts, offsets, strict=True)]).astype(
-            np.int32),
-        vertex_colors=(np.concatenate([p.vertex_colors for p in parts])  # type: ignore[misc]
-                       if keep_colors else None),
-        vertex_normals=(np.concatenate([p.vertex_normals for p in parts])  # type: ignore[misc]
-                        if keep_normals else None),
-    )

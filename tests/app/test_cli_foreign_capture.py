@@ -17,7 +17,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pipeline.io.gltf_io import decode_glb
+from pipeline.io.gltf_read import decode_glb
 from tests.pipeline.sphere_scene import distance_to_sphere, ring_cameras, sphere_depth
 
 DEPTH_SCALE = 0.00025

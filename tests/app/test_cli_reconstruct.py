@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from pipeline.io.capture_io import write_capture
-from pipeline.io.gltf_io import decode_glb
+from pipeline.io.gltf_read import decode_glb
 from pipeline.io.mesh_io import read_mesh, write_ply
 from pipeline.synth.rig import RigConfig
 from pipeline.synth.scene import SynthConfig, sample_mesh, synthesize, true_cameras

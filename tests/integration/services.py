@@ -313,7 +313,7 @@ def check_draco_glb(data: bytes) -> Any:
     import json
     import struct
 
-    from pipeline.io.gltf_io import decode_glb
+    from pipeline.io.gltf_read import decode_glb
 
     magic, version, _ = struct.unpack_from("<III", data, 0)
     assert (magic, version) == (0x46546C67, 2), "not a glTF 2.0 binary"
