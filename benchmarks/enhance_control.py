@@ -33,7 +33,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from enhance import VERTEX_NOISE_ONLY, network_predictions  # noqa: E402
 
-from app.cli.train import training_pairs, training_sets  # noqa: E402
+from app.cli.train_data import training_pairs, training_sets  # noqa: E402
 from pipeline.enhance import train as tr  # noqa: E402
 from pipeline.enhance import train_config as tc  # noqa: E402
 from pipeline.enhance.data import make_pairs  # noqa: E402

@@ -1,5 +1,6 @@
 """`volumesh train`: trains the twicing selector (the pre-smoothing), the regressor, the VAE and
-the U-Net + ControlNet, then fine-tunes the three end to end; writes weights."""
+the U-Net + ControlNet, then fine-tunes the three end to end; writes weights, training.json and
+the model card. The data are `train_data`'s, the network stages `train_stages`'."""
 
 from __future__ import annotations
 
@@ -14,8 +15,6 @@ import typer
 from app.cli import app
 from app.cli.model_card import model_card
 
-VALIDATION_MESHES = ("spot", "fandisk")
-TEST_MESH_PREFIX = "stanford-bunny"
 STAGES = "selector,regressor,vae,ldm,finetune"
 MESHES = Path("../shared/data/meshes")
 
@@ -76,22 +75,62 @@ def train(
     """Train the enhancement models from meshes (never the bunny: it is the test model)."""
     from tqdm import tqdm
 
-    from pipeline.enhance import train as tr
-    from pipeline.enhance import train_config as tc
-    from pipeline.enhance import train_loop as tl
-    from pipeline.enhance.data import MIXES, with_mix
+    from app.cli.train_data import selector_stage, set_percent, training_pairs, training_sets
+    from app.cli.train_stages import NETWORK_STAGES, StageRunner, write_report
     from pipeline.enhance.device import resolve_device
-    from pipeline.enhance.inference import ldm_to_bytes, weights_to_bytes
-    from pipeline.enhance.pipelines.depth_ldm import LDMModels
-    from pipeline.enhance.validate import validate_ldm, validate_regressor
+
+    cfg = run_config(config, budget_scale, poses, mix, minutes, lr, loss_mask)
+    wanted = wanted_stages(stages, init)
+    dev = resolve_device(device)
+    (out / "checkpoints").mkdir(parents=True, exist_ok=True)
+    report_path = out / "training.json"
+    report = json.loads(report_path.read_text()) if resume and report_path.exists() else {}
+    report.update({"config": asdict(cfg), "seed": seed, "device": dev.type})
+
+    train_set, val_set = training_sets(meshes, procedural, seed)
+    report["data"] = {"train": [n for n, _ in train_set], "validation": [n for n, _ in val_set]}
+    if "selector" in wanted and not (resume and (out / "selector.safetensors").exists()):
+        report["selector"] = selector_stage(out, train_set, val_set, cfg.selector, seed)
+        write_report(report_path, report)
+    network_stages = [s for s in wanted if s in NETWORK_STAGES]
+    if network_stages:
+        t0 = time.monotonic()
+        with tqdm(total=100, desc="data", unit="%") as bar:
+            train_pairs = training_pairs(train_set, cfg.data, seed, workers,
+                                         lambda f: set_percent(bar, f))
+        val_pairs = training_pairs(val_set, cfg.data, seed + 1000, workers)
+        report["data"].update({"train_pairs": len(train_pairs.source),
+                               "validation_pairs": len(val_pairs.source),
+                               "seconds": time.monotonic() - t0})
+        runner = StageRunner(out, cfg, seed, dev, resume, train_pairs, val_pairs)
+        if init is not None:
+            report["init"] = str(init)
+        runner.start_from(init)
+        for stage in network_stages:
+            entry = runner.run(stage)
+            if entry is not None:
+                report[stage] = entry
+                write_report(report_path, report)
+                typer.echo(f"{stage}: {json.dumps(entry['validation'])}")
+    write_report(report_path, report)
+    (out / "MODEL_CARD.md").write_text(model_card(report))
+
+
+def run_config(config: str, budget_scale: float, poses: int | None, mix: str,
+               minutes: float | None, lr: float | None, loss_mask: float | None):
+    """The named configuration with the command line's edits; ValueError names a bad option."""
+    from pipeline.enhance import train_config as tc
+    from pipeline.enhance.data import MIXES, with_mix
 
     if config not in tc.CONFIGS:
         raise ValueError(f"--config: {config!r} is not one of {', '.join(tc.CONFIGS)}")
-    cfg = tc.scaled(tc.CONFIGS[config], budget_scale) if budget_scale != 1.0 else tc.CONFIGS[config]
-    if poses is not None:
-        cfg = replace(cfg, data=replace(cfg.data, poses_per_mesh=poses))
     if mix not in MIXES:
         raise ValueError(f"--mix: {mix!r} is not one of {', '.join(MIXES)}")
+    cfg = tc.CONFIGS[config]
+    if budget_scale != 1.0:
+        cfg = tc.scaled(cfg, budget_scale)
+    if poses is not None:
+        cfg = replace(cfg, data=replace(cfg.data, poses_per_mesh=poses))
     cfg = replace(cfg, data=with_mix(cfg.data, mix))
     if minutes is not None:
         cfg = tc.capped(cfg, minutes)
@@ -99,6 +138,11 @@ def train(
         cfg = tc.with_lr(cfg, lr)
     if loss_mask is not None:
         cfg = replace(cfg, loss_mask_threshold_n=loss_mask)
+    return cfg
+
+
+def wanted_stages(stages: str, init: Path | None) -> list[str]:
+    """The --stages list, checked against each other and against --init's folder."""
     wanted = [s.strip() for s in stages.split(",") if s.strip()]
     for s in wanted:
         if s not in STAGES.split(","):
@@ -111,253 +155,4 @@ def train(
         if {"vae", "ldm"} & set(wanted):
             raise ValueError("--init: leave out the vae and ldm stages (finetune starts from "
                              "the folder's)")
-    dev = resolve_device(device)
-    device = dev.type
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "checkpoints").mkdir(exist_ok=True)
-    report_path = out / "training.json"
-    report = json.loads(report_path.read_text()) if resume and report_path.exists() else {}
-    report.update({"config": asdict(cfg), "seed": seed, "device": device})
-
-    train_set, val_set = training_sets(meshes, procedural, seed)
-    report["data"] = {"train": [n for n, _ in train_set], "validation": [n for n, _ in val_set]}
-    if "selector" in wanted:
-        wanted.remove("selector")
-        if not (resume and (out / "selector.safetensors").exists()):
-            report["selector"] = selector_stage(out, train_set, val_set, cfg.selector, seed)
-            report_path.write_text(json.dumps(report, indent=1))
-    if wanted:
-        t0 = time.monotonic()
-        with tqdm(total=100, desc="data", unit="%") as bar:
-            train_pairs = training_pairs(train_set, cfg.data, seed, workers,
-                                         lambda f: _bar(bar, f))
-        val_pairs = training_pairs(val_set, cfg.data, seed + 1000, workers)
-        report["data"].update(
-            {
-                "train_pairs": len(train_pairs.source),
-                "validation_pairs": len(val_pairs.source),
-                "seconds": time.monotonic() - t0,
-            }
-        )
-
-    def checkpoint_io(stage: str):
-        path = out / "checkpoints" / f"{stage}.pt"
-        state = None
-        if resume and path.exists():
-            state = tl.checkpoint_from_bytes(path.read_bytes())
-
-        def save(ck: dict) -> None:
-            tmp = path.with_suffix(".tmp")
-            tmp.write_bytes(tl.checkpoint_to_bytes(ck))
-            tmp.replace(path)  # atomic: an interrupted write never spoils the last checkpoint
-
-        return state, save
-
-    def finished(name: str) -> bytes | None:
-        path = out / _stage_file(name)
-        return path.read_bytes() if resume and path.exists() else None
-
-    vae, nets, regressor, initial = None, None, None, None
-    if init is not None:
-        from pipeline.enhance.inference import load_ldm, load_regressor
-
-        report["init"] = str(init)
-        initial = regressor = load_regressor((init / "regressor.safetensors").read_bytes())
-        models = load_ldm((init / "vae.safetensors").read_bytes(),
-                          (init / "ldm.safetensors").read_bytes())
-        vae, nets = models.vae.to(dev), (models.unet.to(dev), models.controlnet.to(dev))
-    trained_regressor = finished("regressor")
-    if trained_regressor is not None:
-        from pipeline.enhance.inference import load_regressor
-
-        regressor = load_regressor(trained_regressor)
-    if regressor is not None:
-        regressor.to(dev)
-
-    def refines(stage: str):
-        """The regressor the LDM's stages refine (None when the config does not)."""
-        if not cfg.ldm_refines_regressor:
-            return None
-        if regressor is None:
-            raise ValueError(f"--stages: {stage} refines the regressor: run the regressor "
-                             "stage first (or give its weights in --out or --init)")
-        return regressor
-
-    for stage in wanted:
-        done = finished(stage)
-        if done is not None:
-            # A finished stage is kept; the VAE and LDM are loaded for the stages after them.
-            from pipeline.enhance.inference import load_ldm, load_vae
-
-            if stage == "vae":
-                vae = load_vae(done).to(dev)
-            if stage == "ldm" and vae is not None:
-                models = load_ldm(finished("vae") or b"", done)
-                vae, nets = models.vae.to(dev), (models.unet.to(dev), models.controlnet.to(dev))
-            continue
-        resume_state, save = checkpoint_io(stage)
-        bar, cb = _stage_bar(stage)
-        t_stage = time.monotonic()
-        if stage == "regressor":
-            regressor, log = tr.train_regressor(
-                train_pairs, cfg, seed, dev, resume_state, save, cb, initial
-            )
-            data = weights_to_bytes(regressor.state_dict(), asdict(regressor.config))
-            figures = validate_regressor(regressor, val_pairs, cfg.validation_views, dev)
-        elif stage == "vae":
-            vae, log = tr.train_vae(train_pairs, cfg, seed, dev, resume_state, save, cb,
-                                    refines("vae"))
-            data = weights_to_bytes(vae.state_dict(), asdict(cfg.vae))
-            figures = validate_ldm(None, vae, val_pairs, cfg.validation_views, dev,
-                                   refines("vae"))
-        elif stage == "ldm":
-            if vae is None:
-                raise ValueError("--stages: ldm needs the vae stage (or its weights in --out)")
-            unet, control, log = tr.train_ldm(
-                train_pairs, vae, cfg, seed, dev, resume_state, save, cb, refines("ldm")
-            )
-            nets = (unet, control)
-            models = LDMModels(vae, unet, control, refines("ldm"))
-            data = ldm_to_bytes(models, asdict(cfg.unet))
-            figures = validate_ldm(nets, vae, val_pairs, cfg.validation_views, dev,
-                                   models.refines)
-        else:
-            if vae is None or nets is None:
-                raise ValueError("--stages: finetune needs the vae and ldm stages (or their "
-                                 "weights in --out)")
-            models, log = tr.train_finetune(
-                train_pairs, LDMModels(vae, *nets, refines("finetune")), cfg, seed, dev,
-                resume_state, save, cb,
-            )
-            # The stage-wise weights stay beside the fine-tuned ones for comparison.
-            (out / "pretrained").mkdir(exist_ok=True)
-            for name in ("vae", "ldm"):
-                if (out / f"{name}.safetensors").exists():  # absent when fine-tuning --init
-                    (out / f"{name}.safetensors").replace(
-                        out / "pretrained" / f"{name}.safetensors"
-                    )
-            vae, nets = models.vae, (models.unet, models.controlnet)
-            vae_bytes = weights_to_bytes(vae.state_dict(), asdict(cfg.vae))
-            (out / "vae.safetensors").write_bytes(vae_bytes)
-            (out / "ldm.safetensors").write_bytes(
-                ldm_to_bytes(models, asdict(cfg.unet)))
-            data = b"end-to-end fine-tuned: see vae.safetensors and ldm.safetensors"
-            figures = validate_ldm(nets, vae, val_pairs, cfg.validation_views, dev,
-                                   models.refines)
-        bar.close()
-        (out / _stage_file(stage)).write_bytes(data)
-        report[stage] = {
-            "steps": log[-1]["step"] if log else 0,
-            "lr": getattr(cfg, f"{stage}_budget").lr,
-            "train_seconds": log[-1]["seconds"] if log else 0.0,
-            "wall_seconds_this_run": time.monotonic() - t_stage,
-            "final_loss": log[-1]["loss"] if log else None,
-            "loss_log": log[:: max(1, len(log) // 50)],
-            "validation": figures,
-        }
-        report_path.write_text(json.dumps(report, indent=1))
-        typer.echo(f"{stage}: {json.dumps(figures)}")
-    report_path.write_text(json.dumps(report, indent=1))
-    (out / "MODEL_CARD.md").write_text(model_card(report))
-
-
-def selector_stage(out: Path, train_set, val_set, config, seed: int) -> dict:
-    """Trains the twicing selector on noisy draws of the training meshes, writes
-    selector.safetensors; its report entry, with validation on the held-out meshes."""
-    import numpy as np
-    from tqdm import tqdm
-
-    from pipeline.enhance import selector_training as st
-    from pipeline.enhance.inference import weights_to_bytes
-
-    rng = np.random.default_rng(seed)
-    t0 = time.monotonic()
-    with tqdm(total=100, desc="selector data", unit="%") as data_bar:
-        examples = st.selector_examples(train_set, config, rng,
-                                        progress=lambda f: _bar(data_bar, f))
-    data_seconds = time.monotonic() - t0
-    bar, cb = _stage_bar("selector")
-    model, log = st.train_selector(examples, config, seed, cb)
-    bar.close()
-    (out / "selector.safetensors").write_bytes(
-        weights_to_bytes(model.state_dict(), asdict(config.model))
-    )
-    figures = st.validate_selector(model, val_set, config, np.random.default_rng(seed + 1000))
-    typer.echo(f"selector: {json.dumps(figures)}")
-    return {**log, "data_seconds": data_seconds, "draws": len(examples),
-            "vertices": int(sum(len(e.features) for e in examples)), "validation": figures}
-
-
-POSES_PER_JOB = 8
-
-
-def training_sets(meshes: Path, procedural: int, seed: int) -> tuple[list, list]:
-    """(train, validation) lists of (name, mesh): the folder's meshes but the test model,
-    split by mesh (VALIDATION_MESHES held apart), and `procedural` seeded shapes (one more
-    held apart)."""
-    import numpy as np
-
-    from pipeline.enhance.data import procedural_meshes
-    from pipeline.io.mesh_io import read_mesh
-
-    sources = sorted(p for p in meshes.glob("*") if p.suffix.lower() in (".obj", ".ply", ".off"))
-    sources = [p for p in sources if not p.stem.startswith(TEST_MESH_PREFIX)]
-    named = [(p.stem, read_mesh(p)) for p in sources]
-    val_names = [n for n, _ in named if n in VALIDATION_MESHES] or [n for n, _ in named][-1:]
-    procs = procedural_meshes(np.random.default_rng(seed), procedural + 1)
-    train_set = [(n, m) for n, m in named if n not in val_names] + procs[:-1]
-    val_set = [(n, m) for n, m in named if n in val_names] + procs[-1:]
-    return train_set, val_set
-
-
-def training_pairs(items, data, seed: int, workers: int, progress=None):
-    """`make_pairs` over jobs of at most POSES_PER_JOB poses of one mesh, each job with its
-    own seed (and so its own remesh edge length), run by `workers` processes; the pairs do
-    not depend on `workers`."""
-    from concurrent.futures import ProcessPoolExecutor
-    from dataclasses import replace
-    from multiprocessing import get_context
-
-    from pipeline.enhance.data import concat_pairs, make_pairs
-
-    sources, configs = [], []
-    for name, mesh in items:
-        for start in range(0, data.poses_per_mesh, POSES_PER_JOB):
-            sources.append([(name, mesh)])
-            configs.append(replace(data, poses_per_mesh=min(POSES_PER_JOB,
-                                                            data.poses_per_mesh - start)))
-    seeds = [seed * 100_003 + k for k in range(len(sources))]
-    parts = []
-    # spawn, not fork: the parent may already hold CUDA or torch's thread pools.
-    with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:
-        done = (pool.map(make_pairs, sources, configs, seeds) if workers > 1
-                else map(make_pairs, sources, configs, seeds))
-        for part in done:
-            parts.append(part)
-            if progress is not None:
-                progress(len(parts) / len(sources))
-    return concat_pairs(parts)
-
-
-def _stage_file(stage: str) -> str:
-    """The file whose presence marks a stage finished (fine-tuning rewrites vae and ldm)."""
-    return "finetune.done" if stage == "finetune" else f"{stage}.safetensors"
-
-
-def _stage_bar(stage: str):
-    """A progress bar for a training stage and the (fraction, text) callback that moves it."""
-    from tqdm import tqdm
-
-    bar = tqdm(total=1000, desc=stage)
-
-    def cb(f: float, text: str) -> None:
-        bar.n = int(f * 1000)
-        bar.set_postfix_str(text, refresh=False)
-        bar.refresh()
-
-    return bar, cb
-
-
-def _bar(bar, fraction: float) -> None:
-    bar.n = int(fraction * 100)
-    bar.refresh()
+    return wanted

@@ -7,7 +7,7 @@ import numpy as np
 import torch
 from typer.testing import CliRunner
 
-from app.cli.train import training_pairs
+from app.cli.train_data import training_pairs
 from pipeline.enhance.data import DataConfig, procedural_meshes
 from pipeline.io.mesh_io import write_ply
 
