@@ -7,7 +7,7 @@ APT_PACKAGES := libusb-1.0-0 libgomp1 redis-server chromium docker-compose
 HOST ?= 127.0.0.1
 PORT ?= 8000
 
-.PHONY: setup run test lint unit bench clean
+.PHONY: setup run test lint unit bench clean stage-settings
 
 setup: $(VENV)/.installed node_modules/.installed .apt-installed
 
@@ -35,6 +35,9 @@ node_modules/.installed: package.json package-lock.json
 
 run: setup
 	$(VENV)/bin/volumesh serve --host $(HOST) --port $(PORT) --sample
+
+stage-settings: setup  ## the gateway's copy of the pipeline's job option settings
+	$(VENV)/bin/python -c "import json; from pipeline.reconstruct_config import settings_kinds; print(json.dumps(settings_kinds(), indent=1, sort_keys=True))" > app/core/stage_settings.json
 
 lint: setup
 	$(VENV)/bin/ruff check .

@@ -9,6 +9,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from app.core.stage_settings import check_settings, stage_settings
 from workers.models import Asset, Capture, Job, Rig
 
 API_PREFIX = "/api/v1"
@@ -44,7 +45,8 @@ class CapturePublic(BaseModel):
 
 StageSettings = dict[str, bool | int | float | list[float]]
 _SECTION = ("Settings of one pipeline stage by field name (e.g. meshing: {\"poisson_depth\": 7}); "
-            "a worker checks them, and the job fails with a message naming a bad one.")
+            "an unknown name or a value of the wrong kind is a 422 naming it; a worker checks "
+            "the values' ranges, and the job fails with a message naming a bad one.")
 
 
 Matrix4 = list[list[float]]
@@ -157,6 +159,10 @@ class JobCreate(BaseModel):
                              "for a job that only calibrates)")
         if self.calibration_capture_id is None and (self.rig_name or self.calibration):
             raise ValueError("rig_name and calibration need calibration_capture_id")
+        for section in stage_settings():
+            values = getattr(self, section)
+            if values is not None:
+                check_settings(section, values)
         return self
 
     @property

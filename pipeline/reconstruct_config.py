@@ -168,3 +168,26 @@ def config_hash(config: ReconstructConfig) -> str:
     """A stable hex digest of every setting of the config."""
     text = json.dumps(dataclasses.asdict(config), sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()
+
+
+def settings_kinds() -> dict[str, dict[str, str]]:
+    """{section: {setting: kind}} of every job option section (the stage sections and
+    ``calibration``), kind one of bool, int, float, str, list, or fixed (not settable from
+    options). The gateway, which does not import the pipeline, checks job options against a
+    copy of this (`app/core/stage_settings.json`; a test keeps the two equal)."""
+    from pipeline.calibration import CalibrationConfig
+
+    sections = {name: getattr(ReconstructConfig(), name) for name in sorted(_SECTIONS)}
+    sections["calibration"] = CalibrationConfig()
+    return {name: {f.name: _kind(getattr(section, f.name))
+                   for f in dataclasses.fields(section)}
+            for name, section in sorted(sections.items())}
+
+
+def _kind(current: Any) -> str:
+    """The JSON kind `_coerce` accepts for a setting whose default is `current`."""
+    for kind, types in (("bool", bool), ("int", int), ("float", float), ("str", str),
+                        ("list", tuple)):
+        if isinstance(current, types):
+            return kind
+    return "fixed"

@@ -218,6 +218,11 @@ CASES: dict[str, tuple[int, Case]] = {
     "unknown job option": (422, job({"capture_id": UNKNOWN_ID, "colour": "blue"})),
     "option out of range": (422, job({"capture_id": UNKNOWN_ID, "draco_position_bits": 99})),
     "option of wrong type": (422, job({"capture_id": UNKNOWN_ID, "enhance": "yes please"})),
+    "unknown stage setting": (422, job({"capture_id": UNKNOWN_ID, "enhancement": {"bogus": 1}})),
+    "stage setting of wrong kind": (422, job({"capture_id": UNKNOWN_ID,
+                                              "meshing": {"poisson_depth": 7.5}})),
+    "stage setting not settable": (422, job({"capture_id": UNKNOWN_ID,
+                                             "enhancement": {"weights": "x"}})),
     "job body not JSON": (422, job(b"{capture_id: ", raw=True)),
     "job body too large": (413, job(b"{\"capture_id\": \"" + b"a" * 40000 + b"\"}", raw=True)),
     "job body a list": (422, job([1, 2, 3])),
@@ -279,3 +284,19 @@ def test_revoked_key_is_refused(service: Service) -> None:
     response = service.client.post("/api/v1/jobs", json=body, headers=headers)
     assert response.status_code == 401
     assert "revoked" in response.json()["detail"]
+
+
+@pytest.mark.parametrize("section, settings, named", [
+    ("enhancement", {"bogus": 1}, "enhancement.bogus: unknown setting (known: "),
+    ("meshing", {"poisson_depth": 7.5}, "meshing.poisson_depth: expected an integer"),
+    ("calibration", {"icp": 1}, "calibration.icp: expected true or false"),
+])
+def test_a_bad_stage_setting_names_itself_and_creates_no_job(
+        service: Service, section: str, settings: dict, named: str) -> None:
+    before = service.client.get("/api/v1/jobs", headers=service.auth).json()["items"]
+    body: dict[str, Any] = {"capture_id": UNKNOWN_ID, section: settings}
+    if section == "calibration":
+        body = {"calibration_capture_id": UNKNOWN_ID, section: settings}
+    response = service.client.post("/api/v1/jobs", json=body, headers=service.auth)
+    assert response.status_code == 422 and named in response.json()["detail"]
+    assert service.client.get("/api/v1/jobs", headers=service.auth).json()["items"] == before

@@ -52,10 +52,11 @@ def rig(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Rig]:
     proc.stop()
 
 
-def test_unknown_stage_setting_fails_the_job_with_its_name(rig: Rig) -> None:
-    job = rig.run(enhance=False, meshing={"bogus_knob": 1})
+def test_a_stage_setting_out_of_range_fails_the_job_with_its_name(rig: Rig) -> None:
+    # Names and kinds are the gateway's to refuse (a 422); ranges are the worker's.
+    job = rig.run(enhance=False, meshing={"poisson_depth": 99})
     assert job["state"] == "failed"
-    assert "meshing.bogus_knob" in job["error"] and "unknown setting" in job["error"]
+    assert "meshing" in job["error"] and "poisson_depth" in job["error"], job["error"]
 
 
 def test_missing_frame_fails_the_job(rig: Rig) -> None:

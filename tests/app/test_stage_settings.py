@@ -1,0 +1,40 @@
+"""The gateway's copy of the stage settings is the pipeline's, and it checks names and kinds
+as the worker's `replace_section` does."""
+
+from __future__ import annotations
+
+import pytest
+
+from app.core.stage_settings import check_settings, stage_settings
+from pipeline.reconstruct_config import ReconstructConfig, config_from_options, settings_kinds
+
+
+def test_the_gateways_copy_is_the_pipelines() -> None:
+    assert stage_settings() == settings_kinds(), "run `make stage-settings` and commit the file"
+
+
+@pytest.mark.parametrize("section, values", [
+    ("enhancement", {"method": "regressor", "views": 14, "strength": 1,
+                     "presmooth_learned": False}),
+    ("meshing", {"poisson_depth": 7}),
+    ("colorize", {"fallback_rgb": [1, 2, 3]}),
+])
+def test_what_the_gateway_accepts_the_worker_accepts(section: str, values: dict) -> None:
+    check_settings(section, values)
+    config = config_from_options({section: values})
+    assert config != ReconstructConfig()
+
+
+@pytest.mark.parametrize("section, values, named", [
+    ("enhancement", {"bogus": 1}, "enhancement.bogus"),
+    ("enhancement", {"views": True}, "enhancement.views"),
+    ("enhancement", {"strength": "high"}, "enhancement.strength"),
+    ("enhancement", {"update": 1}, "enhancement.update"),
+    ("remesh", {"target_edge_length_m": [0.01]}, "remesh.target_edge_length_m"),
+])
+def test_what_the_gateway_refuses_the_worker_refuses_by_the_same_name(
+        section: str, values: dict, named: str) -> None:
+    with pytest.raises(ValueError, match=named.replace(".", r"\.")):
+        check_settings(section, values)
+    with pytest.raises(ValueError, match=named.replace(".", r"\.")):
+        config_from_options({section: values})
