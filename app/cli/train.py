@@ -76,7 +76,7 @@ def train(
     from tqdm import tqdm
 
     from app.cli.train_data import selector_stage, set_percent, training_pairs, training_sets
-    from app.cli.train_stages import NETWORK_STAGES, StageRunner, write_report
+    from app.cli.train_stages import NETWORK_STAGES, StageRunner
     from pipeline.enhance.device import resolve_device
 
     cfg = run_config(config, budget_scale, poses, mix, minutes, lr, loss_mask)
@@ -91,7 +91,7 @@ def train(
     report["data"] = {"train": [n for n, _ in train_set], "validation": [n for n, _ in val_set]}
     if "selector" in wanted and not (resume and (out / "selector.safetensors").exists()):
         report["selector"] = selector_stage(out, train_set, val_set, cfg.selector, seed)
-        write_report(report_path, report)
+        report_path.write_text(json.dumps(report, indent=1))
     network_stages = [s for s in wanted if s in NETWORK_STAGES]
     if network_stages:
         t0 = time.monotonic()
@@ -110,9 +110,9 @@ def train(
             entry = runner.run(stage)
             if entry is not None:
                 report[stage] = entry
-                write_report(report_path, report)
+                report_path.write_text(json.dumps(report, indent=1))
                 typer.echo(f"{stage}: {json.dumps(entry['validation'])}")
-    write_report(report_path, report)
+    report_path.write_text(json.dumps(report, indent=1))
     (out / "MODEL_CARD.md").write_text(model_card(report))
 
 

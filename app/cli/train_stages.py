@@ -8,7 +8,6 @@ finished stages in `--out`.
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -165,10 +164,6 @@ class StageRunner:
     def _set_ldm(self, models: LDMModels) -> None:
         self.vae = models.vae.to(self.device)
         self.nets = (models.unet.to(self.device), models.controlnet.to(self.device))
-
-
-def write_report(path: Path, report: dict[str, Any]) -> None:
-    path.write_text(json.dumps(report, indent=1))
 
 
 def _save_checkpoint(path: Path, checkpoint: tl.Checkpoint) -> None:
