@@ -297,6 +297,9 @@ def main() -> None:
         ("ldm_1_step", replace(base, method="ldm", steps=1)),
         ("ldm_4_steps", replace(base, method="ldm", steps=4)),
         ("ldm_10_steps", replace(base, method="ldm", steps=10)),
+        # One fixed share of the correction for every vertex instead of the learned gains.
+        ("ldm_4_steps_fixed_gain", replace(base, method="ldm", steps=4, learned_gain=False)),
+        ("regressor_fixed_gain", replace(base, method="regressor", learned_gain=False)),
         # Inference-time variants of the same model: averaging more estimates per vertex.
         ("ldm_4_steps_ensemble_4", replace(base, method="ldm", steps=4, ensemble=4)),
         ("ldm_1_step_14_views", replace(base, method="ldm", steps=1, views=14)),

@@ -3,8 +3,9 @@
 
     .venv/bin/python benchmarks/enhance_gain.py [--mesh spot --mesh fandisk] [--weights DIR]
 
-`enhance_mesh` per mesh, method and gain, without the light remesh so only the gain differs
-between runs of a method (the networks are deterministic). Choose the gain on validation
+`enhance_mesh` per mesh, method and fixed gain (`learned_gain` off), and with the learned
+vertex gains (`learned`), without the light remesh so only the gain differs between runs of a
+method (the networks are deterministic). Choose the gain on validation
 meshes (spot, fandisk), never on the bunny, the test model.
 """
 
@@ -32,8 +33,10 @@ def sweep(name: str, meshes: Path, gains: list[float], views: int, weights: dict
         out[method] = {}
         for gain in gains:
             config = EnhanceConfig(method=method, views=views, correction_gain=gain,
-                                   remesh_iterations=0, weights=weights)
+                                   learned_gain=False, remesh_iterations=0, weights=weights)
             out[method][str(gain)] = c2m_summary(enhance_mesh(noisy, config), truth)
+        config = EnhanceConfig(method=method, views=views, remesh_iterations=0, weights=weights)
+        out[method]["learned"] = c2m_summary(enhance_mesh(noisy, config), truth)
     return out
 
 

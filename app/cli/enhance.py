@@ -8,7 +8,6 @@ from typing import Annotated
 import typer
 
 from app.cli import app
-from pipeline.enhance.config import EnhanceConfig
 
 
 @app.command("enhance-mesh")
@@ -65,9 +64,10 @@ def enhance_mesh_command(
         ),
     ] = True,
     gain: Annotated[
-        float,
-        typer.Option("--gain", help="Share of the networks' depth correction followed (0, 2]."),
-    ] = EnhanceConfig.correction_gain,
+        float | None,
+        typer.Option("--gain", help="Follow this fixed share (0, 2] of the networks' depth "
+                     "correction everywhere, instead of the learned per-vertex gains."),
+    ] = None,
     min_noise_ratio: Annotated[
         float,
         typer.Option(
@@ -84,7 +84,8 @@ def enhance_mesh_command(
     weights: Annotated[
         Path | None,
         typer.Option(
-            "--weights", help="Folder with regressor/vae/ldm .safetensors (default: shipped)."
+            "--weights", help="Folder of .safetensors (regressor, vae, ldm, selector, "
+            "ldm_gain, regressor_gain; those it lacks: the shipped)."
         ),
     ] = None,
 ) -> None:
@@ -94,6 +95,7 @@ def enhance_mesh_command(
     from pipeline.enhance import EnhanceConfig, enhance_mesh
     from pipeline.enhance.config import skips_enhancement, validate_config
     from pipeline.enhance.noise_level import noise_to_edge_ratio
+    from pipeline.enhance.weights import DEFAULT_FILES
     from pipeline.io.mesh_io import read_mesh, write_ply
 
     loaded = None
@@ -103,7 +105,7 @@ def enhance_mesh_command(
         loaded = {
             p.stem: p.read_bytes()
             for p in weights.glob("*.safetensors")
-            if p.stem in ("regressor", "vae", "ldm")
+            if p.stem in DEFAULT_FILES
         }
     config = EnhanceConfig(
         method=method,
@@ -118,7 +120,8 @@ def enhance_mesh_command(
         presmooth_passes=presmooth_passes,
         presmooth_adaptive=adaptive,
         presmooth_learned=learned,
-        correction_gain=gain,
+        correction_gain=EnhanceConfig.correction_gain if gain is None else gain,
+        learned_gain=gain is None,
         min_noise_ratio=min_noise_ratio,
         device=device,
         weights=loaded,

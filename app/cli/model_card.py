@@ -22,6 +22,7 @@ def model_card(report: dict) -> str:
         "- never trained on: stanford-bunny (the benchmark's test model)",
         *_pairs_lines(report),
         *_selector_lines(report),
+        *_gain_lines(report),
         "- the depth networks' copies shipped in `pipeline/enhance/weights` are stored as "
         "float16 and load as float32; mesh-level figures: README, Enhancement "
         "(`benchmarks/enhance.py`)",
@@ -118,6 +119,45 @@ def _selector_lines(report: dict) -> list[str]:
     for name, f in r["validation"].items():
         lines.append(f"  | {name} | {f['noisy']:.3f} | {f['best_count']:.3f} | "
                      f"{f['adaptive_twicing']:.3f} | {f['selector']:.3f} |")
+    return lines + [""]
+
+
+def _gain_lines(report: dict) -> list[str]:
+    """The card's lines on the vertex gain networks (how far the mesh update follows)."""
+    if "gain" not in report:
+        return []
+    r = report["gain"]
+    c = r["config"]  # its own: the gain stage may run on weights another run trained
+    methods = list(r["methods"])
+    steps = ", ".join(f"{m} {log['steps']} steps ({log['train_seconds'] / 60:.1f} min)"
+                      for m, log in r["methods"].items())
+    lines = [
+        "- **vertex gains** (" + ", ".join(f"`{m}_gain.safetensors`" for m in methods)
+        + ", `models/vertex_gain.py`): per-vertex MLPs "
+        f"({c['model']['hidden']} wide) from the views' steps (their mean along the normal, "
+        "its spread over the views, the views' weight and the share of them that see it, per "
+        "view) to the share of the "
+        f"network's correction the vertex follows, in (0, {c['model']['max_gain']}). Trained on "
+        f"{r['draws']} noisy draws of {', '.join(r['meshes'])} ({r['vertices']} seen vertices; "
+        f"edges {c['edge_fraction'][0]}–{c['edge_fraction'][1]} of the largest extent, uniform "
+        f"noise along normals of {c['noise_to_edge'][0]}–{c['noise_to_edge'][1]} edge lengths; "
+        f"{c['views']} views at {c['resolution']}²), pre-smoothed and enhanced by the weights "
+        f"above; {steps}, data {r['data_seconds'] / 60:.1f} min; loss: the moved vertex's "
+        "squared distance to the truth along its normal.",
+        *([f"  Run as `{r['command']}` on {r['device']}. The enhance stage uses them by "
+           "default (`EnhanceConfig.learned_gain`)."] if "command" in r else []),
+        "",
+        "  Held-out meshes, one draw each, RMS distance to the truth in thousandths of the "
+        "extent (no light remesh):",
+        "",
+        "  | mesh | pre-smoothed | " + " | ".join(
+            f"{m}, fixed gain | {m}, learned gains" for m in methods) + " |",
+        "  | --- | --- | " + " | ".join("--- | ---" for _ in methods) + " |",
+    ]
+    for name, f in r["validation"].items():
+        cells = " | ".join(f"{f[f'{m}_fixed_gain']:.3f} | {f[f'{m}_learned_gain']:.3f}"
+                           for m in methods)
+        lines.append(f"  | {name} | {f['presmoothed']:.3f} | {cells} |")
     return lines + [""]
 
 

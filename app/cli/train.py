@@ -1,6 +1,7 @@
 """`volumesh train`: trains the twicing selector (the pre-smoothing), the regressor, the VAE and
-the U-Net + ControlNet, then fine-tunes the three end to end; writes weights, training.json and
-the model card. The data are `train_data`'s, the network stages `train_stages`'."""
+the U-Net + ControlNet, fine-tunes the three end to end, then the vertex gains of the mesh
+update; writes weights, training.json and the model card. The data are `train_data`'s, the
+network stages `train_stages`'."""
 
 from __future__ import annotations
 
@@ -15,7 +16,7 @@ import typer
 from app.cli import app
 from app.cli.model_card import model_card
 
-STAGES = "selector,regressor,vae,ldm,finetune"
+STAGES = "selector,regressor,vae,ldm,finetune,gain"
 MESHES = Path("../shared/data/meshes")
 
 
@@ -75,7 +76,14 @@ def train(
     """Train the enhancement models from meshes (never the bunny: it is the test model)."""
     from tqdm import tqdm
 
-    from app.cli.train_data import selector_stage, set_percent, training_pairs, training_sets
+    from app.cli.train_data import (
+        gain_stage,
+        network_weights,
+        selector_stage,
+        set_percent,
+        training_pairs,
+        training_sets,
+    )
     from app.cli.train_stages import NETWORK_STAGES, StageRunner
     from pipeline.enhance.device import resolve_device
 
@@ -112,6 +120,9 @@ def train(
                 report[stage] = entry
                 report_path.write_text(json.dumps(report, indent=1))
                 typer.echo(f"{stage}: {json.dumps(entry['validation'])}")
+    if "gain" in wanted and not (resume and (out / "ldm_gain.safetensors").exists()):
+        report["gain"] = gain_stage(out, train_set, val_set, cfg.gain, seed,
+                                    network_weights(out, init))
     report_path.write_text(json.dumps(report, indent=1))
     (out / "MODEL_CARD.md").write_text(model_card(report))
 

@@ -1,5 +1,5 @@
 """The training data of `volumesh train`: the mesh split, the depth pairs (made in worker
-processes) and the twicing selector's stage, which makes its own data."""
+processes), and the twicing selector's and vertex gains' stages, which make their own data."""
 
 from __future__ import annotations
 
@@ -39,6 +39,51 @@ def selector_stage(out: Path, train_set, val_set, config, seed: int) -> dict:
     typer.echo(f"selector: {json.dumps(figures)}")
     return {**log, "data_seconds": data_seconds, "draws": len(examples),
             "vertices": int(sum(len(e.features) for e in examples)), "validation": figures}
+
+
+def gain_stage(out: Path, train_set, val_set, config, seed: int,
+               weights: dict[str, bytes] | None) -> dict:
+    """Trains a vertex gain network per method on noisy draws of the training meshes, enhanced
+    by `weights` (None or a model left out: the shipped), writes <method>_gain.safetensors;
+    its report entry, with validation on the held-out meshes."""
+    import numpy as np
+    from tqdm import tqdm
+
+    from pipeline.enhance import gain_training as gt
+    from pipeline.enhance.inference import weights_to_bytes
+
+    rng = np.random.default_rng(seed)
+    t0 = time.monotonic()
+    with tqdm(total=100, desc="gain data", unit="%") as data_bar:
+        examples = gt.gain_examples(train_set, config, weights, rng,
+                                    progress=lambda f: set_percent(data_bar, f))
+    data_seconds = time.monotonic() - t0
+    models, logs = {}, {}
+    for method, method_examples in examples.items():
+        bar, cb = stage_bar(f"{method} gain")
+        models[method], logs[method] = gt.train_gain(method_examples, config, seed, cb)
+        bar.close()
+        (out / f"{method}_gain.safetensors").write_bytes(
+            weights_to_bytes(models[method].state_dict(), asdict(config.model)))
+    figures = gt.validate_gain(models, val_set, config, weights,
+                               np.random.default_rng(seed + 1000))
+    typer.echo(f"gain: {json.dumps(figures)}")
+    first = next(iter(examples.values()))
+    return {"config": asdict(config), "methods": logs, "data_seconds": data_seconds,
+            "draws": len(first), "meshes": list(dict.fromkeys(e.name for e in first)),
+            "vertices": int(sum(len(e.features) for e in first)), "validation": figures}
+
+
+def network_weights(out: Path, init: Path | None) -> dict[str, bytes]:
+    """The weights the gain stage enhances with: each model from this run's `out` when it
+    trained it, else from `init`; models in neither are left to the shipped."""
+    found = {}
+    for name in ("selector", "regressor", "vae", "ldm"):
+        for folder in (out, init):
+            if folder is not None and (folder / f"{name}.safetensors").exists():
+                found[name] = (folder / f"{name}.safetensors").read_bytes()
+                break
+    return found
 
 
 POSES_PER_JOB = 8

@@ -10,7 +10,7 @@ from numpy.typing import NDArray
 
 from pipeline.enhance.noise_level import noise_to_edge_ratio
 from pipeline.enhance.render import DepthRenders, make_views, render_depth, view_directions
-from pipeline.enhance.update import UpdateConfig, update_vertices
+from pipeline.enhance.update import UpdateConfig, ViewSteps, apply_view_steps, view_steps
 from pipeline.mesh import TriangleMesh, mean_edge_length_m
 
 STAGE_PROGRESS = {"render": 0.03, "presmooth": 0.33, "network": 0.5, "update": 0.54,
@@ -72,6 +72,10 @@ class EnhanceConfig:
     0.704 on fandisk; 0.35 gives the lowest mean (the pre-smoothed mesh itself: 0.777 and
     0.732). The weights before, trained with the loose mask, were over-confident and wanted
     0.1."""
+    learned_gain: bool = True
+    """Each vertex follows its own share of the networks' correction, given by the method's
+    vertex gain network (`vertex_gain.py`; weights `ldm_gain`, `regressor_gain`) from how its
+    views agree; False: every vertex follows `correction_gain`."""
     min_noise_ratio: float = 0.05
     """The networks (ldm, regressor) leave a mesh unchanged whose estimated noise
     (`noise_to_edge_ratio`) is below this; 0 always enhances. Their pre-smoothing removes
@@ -92,8 +96,8 @@ class EnhanceConfig:
     device: str = "auto"
     """Torch device for the networks: auto (CUDA when present), cpu or cuda."""
     weights: dict[str, bytes] | None = None
-    """safetensors bytes per model ('regressor', 'vae', 'ldm', 'selector'); None: the shipped
-    weights."""
+    """safetensors bytes per model ('regressor', 'vae', 'ldm', 'selector', 'ldm_gain',
+    'regressor_gain'); None or a model left out: the shipped weights."""
 
 
 def validate_config(config: EnhanceConfig) -> None:
@@ -135,7 +139,7 @@ def enhance_mesh(
     (``remesh_iterations``), the smoothers keep the connectivity. The networks return a mesh
     less noisy than ``min_noise_ratio`` as it came (`skips_enhancement`)."""
     from pipeline.enhance import baselines
-    from pipeline.enhance.inference import learned_twicing, model_bytes, presmoothed
+    from pipeline.enhance.inference import learned_twicing, model_bytes
 
     validate_config(config)
     if mesh.vertex_count == 0 or mesh.face_count == 0:
@@ -163,6 +167,44 @@ def enhance_mesh(
     if skips_enhancement(mesh, config):
         done("remesh")
         return mesh
+    inputs = update_inputs(mesh, config, device, done)
+    done("presmooth")
+    learned = config.learned_gain and config.method != "views"
+    enhanced = enhance_renders(inputs.base_renders, inputs.renders,
+                               replace(config, correction_gain=1.0) if learned else config)
+    done("network")
+    steps = view_steps(inputs.base, inputs.base_renders, enhanced, inputs.update)
+    gain = learned_vertex_gain(mesh, steps, config) if learned else None
+    result, _ = apply_view_steps(inputs.base, steps, inputs.update, gain)
+    done("update")
+    if config.remesh_iterations > 0:
+        result = light_remesh(result, config.remesh_iterations)
+    done("remesh")
+    return result
+
+
+@dataclass(frozen=True)
+class UpdateInputs:
+    """What the view-based methods enhance and move."""
+
+    renders: DepthRenders
+    """The mesh's own renders, with colour (the networks' side input)."""
+    base: TriangleMesh
+    """The mesh the update moves: the pre-smoothed mesh (the networks), or the mesh (views)."""
+    base_renders: DepthRenders
+    """The base's renders, which the networks correct."""
+    update: UpdateConfig
+    """The update's settings for this method."""
+
+
+def update_inputs(
+    mesh: TriangleMesh, config: EnhanceConfig, device: str,
+    done: Callable[[str], None] = lambda stage: None,
+) -> UpdateInputs:
+    """Renders the mesh (then calls `done("render")`) and pre-smooths it (smoothing steps on
+    `device`) as `config.method` wants."""
+    from pipeline.enhance.inference import model_bytes, presmoothed
+
     views = make_views(mesh.vertices_m, view_directions(config.views), config.resolution)
     renders = render_depth(mesh, views, with_color=True)
     done("render")
@@ -175,15 +217,18 @@ def enhance_mesh(
         update = replace(update, unseen_follow_moves=True)
     if config.method != "views":
         update = replace(update, follow_change=True)
-    done("presmooth")
-    enhanced = enhance_renders(base_renders, renders, config)
-    done("network")
-    result, _ = update_vertices(base, base_renders, enhanced, update)
-    done("update")
-    if config.remesh_iterations > 0:
-        result = light_remesh(result, config.remesh_iterations)
-    done("remesh")
-    return result
+    return UpdateInputs(renders, base, base_renders, update)
+
+
+def learned_vertex_gain(
+    mesh: TriangleMesh, steps: ViewSteps, config: EnhanceConfig
+) -> NDArray[np.float64]:
+    """(V,) each vertex's share of the correction, from the method's gain network."""
+    from pipeline.enhance.inference import load_vertex_gain, model_bytes, vertex_gains
+    from pipeline.enhance.vertex_gain import gain_features
+
+    model = load_vertex_gain(model_bytes(config, f"{config.method}_gain"))
+    return vertex_gains(model, gain_features(steps, mean_edge_length_m(mesh)))
 
 
 def skips_enhancement(mesh: TriangleMesh, config: EnhanceConfig) -> bool:

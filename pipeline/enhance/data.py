@@ -152,6 +152,10 @@ def subdivide_to(mesh: TriangleMesh, edge_m: float, max_faces: int = 400_000) ->
     return TriangleMesh(np.asarray(o3.vertices).copy(), np.asarray(o3.triangles).astype(np.int32))
 
 
+PROCEDURAL = "procedural-"
+"""Name prefix of the procedural shapes."""
+
+
 def procedural_meshes(rng: np.random.Generator, count: int) -> list[tuple[str, TriangleMesh]]:
     """Spheres, tori, boxes, cylinders and lumpy blobs, at least ~1000 faces each."""
     import open3d as o3d
@@ -182,7 +186,7 @@ def procedural_meshes(rng: np.random.Generator, count: int) -> list[tuple[str, T
                 bump += rng.uniform(0.03, 0.12) * np.sin(d @ k + rng.uniform(0, 2 * np.pi))
             v = d * (1.0 + bump)[:, None]
         v = v * rng.uniform(0.6, 1.4, 3)  # anisotropic stretch
-        out.append((f"procedural-{i}", TriangleMesh(v, f)))
+        out.append((f"{PROCEDURAL}{i}", TriangleMesh(v, f)))
     return out
 
 

@@ -131,6 +131,23 @@ def load_selector(data: bytes):
     return model.eval()
 
 
+def load_vertex_gain(data: bytes):
+    from pipeline.enhance.models.vertex_gain import VertexGainConfig, VertexGainNet
+
+    state, cfg = weights_from_bytes(data)
+    model = VertexGainNet(VertexGainConfig(**cfg))
+    model.load_state_dict(state)
+    return model.eval()
+
+
+def vertex_gains(model, features: NDArray[np.float32]) -> NDArray[np.float64]:
+    """(V,) a loaded `VertexGainNet`'s gains for (V, F) `vertex_gain.gain_features`."""
+    import torch
+
+    with torch.no_grad():
+        return model(torch.from_numpy(features)).numpy().astype(np.float64)
+
+
 def learned_twicing(mesh: TriangleMesh, selector: bytes, device: str | None = None
                     ) -> TriangleMesh:
     """The mesh as the selector's (safetensors bytes) per-vertex blend of its twicings, the

@@ -65,7 +65,7 @@ def selector_examples(
     for name, mesh in meshes:
         unit = unit_extent(mesh, name)
         for _ in range(config.draws_per_mesh):
-            truth, noisy = noisy_draw(unit, config, rng)
+            truth, noisy = noisy_draw(unit, config.edge_fraction, config.noise_to_edge, rng)
             cand = twicing_candidates(noisy, config.model.blend)
             errors = np.stack([signed_c2m(v, truth) for v in cand.vertices_m], axis=1)
             keep = np.arange(noisy.vertex_count)
@@ -80,12 +80,14 @@ def selector_examples(
 
 
 def noisy_draw(
-    unit: TriangleMesh, config: SelectorTrainConfig, rng: np.random.Generator
+    unit: TriangleMesh, edge_fraction: tuple[float, float], noise_to_edge: tuple[float, float],
+    rng: np.random.Generator,
 ) -> tuple[TriangleMesh, TriangleMesh]:
-    """(truth, noisy): the unit-extent mesh remeshed at a drawn edge, then noised."""
-    edge = float(rng.uniform(*config.edge_fraction))
+    """(truth, noisy): the unit-extent mesh remeshed at an edge drawn from `edge_fraction`,
+    then noised along normals by an amplitude drawn from `noise_to_edge` edge lengths."""
+    edge = float(rng.uniform(*edge_fraction))
     truth = isotropic(unit, edge)
-    amplitude = edge * float(rng.uniform(*config.noise_to_edge))
+    amplitude = edge * float(rng.uniform(*noise_to_edge))
     return truth, noisy_along_normals(truth, amplitude, rng)
 
 
@@ -135,7 +137,8 @@ def validate_selector(
     of: the noisy mesh, the best single candidate count, adaptive twicing, the selector's blend."""
     out = {}
     for name, mesh in meshes:
-        truth, noisy = noisy_draw(unit_extent(mesh, name), config, rng)
+        truth, noisy = noisy_draw(unit_extent(mesh, name), config.edge_fraction,
+                                  config.noise_to_edge, rng)
         cand = twicing_candidates(noisy, config.model.blend)
         blended = selector_blend(model, cand)
         adaptive = adaptive_twicing(noisy, AdaptiveTwicingConfig(passes=config.model.passes))

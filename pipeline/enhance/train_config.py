@@ -7,9 +7,11 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 from pipeline.enhance.data import SAME_SURFACE_N, DataConfig
+from pipeline.enhance.gain_training import GainTrainConfig
 from pipeline.enhance.models.regressor import RegressorConfig
 from pipeline.enhance.models.unet import UNetConfig
 from pipeline.enhance.models.vae import VAEConfig
+from pipeline.enhance.models.vertex_gain import VertexGainConfig
 from pipeline.enhance.selector_training import SelectorConfig, SelectorTrainConfig
 
 
@@ -35,6 +37,8 @@ class TrainConfig:
     """Training-pair generation."""
     selector: SelectorTrainConfig = field(default_factory=SelectorTrainConfig)
     """The twicing selector's data and budget (its own stage; no depth pairs)."""
+    gain: GainTrainConfig = field(default_factory=GainTrainConfig)
+    """The vertex gain networks' data and budget (their own stage, after the networks)."""
     regressor: RegressorConfig = field(default_factory=RegressorConfig)
     """Baseline network size."""
     vae: VAEConfig = field(default_factory=VAEConfig)
@@ -106,6 +110,11 @@ CONFIGS: dict[str, TrainConfig] = {
             model=SelectorConfig(hidden=8), draws_per_mesh=1, edge_fraction=(0.03, 0.04),
             vertices_per_draw=2000, steps=5, batch=256,
         ),
+        gain=GainTrainConfig(
+            model=VertexGainConfig(hidden=8), with_procedural=True, draws_per_mesh=1,
+            edge_fraction=(0.03, 0.04),
+            resolution=32, vertices_per_draw=2000, steps=5, batch=256,
+        ),
         regressor=RegressorConfig(channels=(8, 16)),
         vae=VAEConfig(channels=(8, 8, 16, 16)),
         unet=UNetConfig(channels=(16, 16), emb_dim=32),
@@ -171,8 +180,10 @@ def scaled(config: TrainConfig, factor: float) -> TrainConfig:
         raise ValueError(f"budget scale must be > 0, got {factor}")
     selector = replace(config.selector, steps=max(1, int(config.selector.steps * factor)),
                        minutes=config.selector.minutes * factor)
+    gain = replace(config.gain, steps=max(1, int(config.gain.steps * factor)),
+                   minutes=config.gain.minutes * factor)
     return _each_budget(
-        replace(config, selector=selector),
+        replace(config, selector=selector, gain=gain),
         lambda b: replace(b, steps=max(1, int(b.steps * factor)), minutes=b.minutes * factor),
     )
 

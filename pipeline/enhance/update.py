@@ -62,17 +62,40 @@ def _bilinear(
     return np.where(ok, bil, image[nr, nc]), np.where(ok, True, valid[nr, nc])
 
 
-def update_vertices(
+@dataclass(frozen=True)
+class ViewSteps:
+    """Where each view's enhanced depth would move each vertex, before the views are averaged."""
+
+    steps_m: NDArray[np.float64]
+    """(K, V) signed step along view k's forward axis (0 where view k does not see the vertex)."""
+    weights: NDArray[np.float64]
+    """(K, V) view k's weight for the vertex: cos² of its normal to the ray where the view
+    sees it (depth test, facing, a step under the cap), else 0."""
+    forwards: NDArray[np.float64]
+    """(K, 3) the views' forward axes."""
+    normals: NDArray[np.float64]
+    """(V, 3) the (neighbour-averaged) unit vertex normals the visibility was judged with."""
+    cap_m: float
+    """Largest move of a vertex."""
+
+    def along_normals_m(self) -> NDArray[np.float64]:
+        """(K, V) each view's step projected onto the vertex normal."""
+        return self.steps_m * (self.forwards @ self.normals.T)
+
+    @property
+    def seen(self) -> NDArray[np.bool_]:
+        """(V,) vertices at least one view sees."""
+        return self.weights.sum(axis=0) > 0
+
+
+def view_steps(
     mesh: TriangleMesh,
     renders: DepthRenders,
     enhanced_depth_n: NDArray[np.float32],
     config: UpdateConfig,
-) -> tuple[TriangleMesh, NDArray[np.bool_]]:
-    """The mesh with vertices moved to the enhanced depth, and the (V,) mask of seen vertices.
-
-    `renders` are the mesh's own renders (for the visibility depth test); `enhanced_depth_n`
-    (N, H, W) the enhanced normalised depth of the same views.
-    """
+) -> ViewSteps:
+    """Each view's step for each vertex toward the enhanced depth (`enhanced_depth_n`, (N, H, W)
+    normalised depth of the views of `renders`, the mesh's own renders)."""
     views = renders.views
     if enhanced_depth_n.shape != renders.depth_n.shape:
         raise ValueError(
@@ -87,8 +110,8 @@ def update_vertices(
     pix, depth_n = project(v, views)
     res = views.resolution
     cap = config.max_step_fraction * views.half_extent_m
-    shift = np.zeros_like(v)
-    weight = np.zeros(len(v))
+    steps = np.zeros((views.count, len(v)))
+    weights = np.zeros((views.count, len(v)))
     for k in range(views.count):
         cos = -normals @ views.forwards[k]
         cols, rows = pix[k, :, 0], pix[k, :, 1]
@@ -108,13 +131,46 @@ def update_vertices(
             step = (target - depth_n[k]) * views.depth_range_m
         # A step beyond the cap means the lookup landed on another surface: not this view's.
         visible &= target_ok & (np.abs(step) < cap)
-        w = np.where(visible, cos**2, 0.0)
-        shift += (w * step)[:, None] * views.forwards[k][None, :]
-        weight += w
+        steps[k] = np.where(visible, step, 0.0)
+        weights[k] = np.where(visible, cos**2, 0.0)
+    return ViewSteps(steps, weights, np.asarray(views.forwards, np.float64), normals, cap)
+
+
+def update_vertices(
+    mesh: TriangleMesh,
+    renders: DepthRenders,
+    enhanced_depth_n: NDArray[np.float32],
+    config: UpdateConfig,
+    vertex_gain: NDArray[np.float64] | None = None,
+) -> tuple[TriangleMesh, NDArray[np.bool_]]:
+    """The mesh with vertices moved to the enhanced depth, and the (V,) mask of seen vertices.
+
+    `renders` are the mesh's own renders (for the visibility depth test); `enhanced_depth_n`
+    (N, H, W) the enhanced normalised depth of the same views.
+    """
+    return apply_view_steps(mesh, view_steps(mesh, renders, enhanced_depth_n, config), config,
+                            vertex_gain)
+
+
+def apply_view_steps(
+    mesh: TriangleMesh,
+    steps: ViewSteps,
+    config: UpdateConfig,
+    vertex_gain: NDArray[np.float64] | None = None,
+) -> tuple[TriangleMesh, NDArray[np.bool_]]:
+    """The mesh with each seen vertex moved by the weighted average of its views' steps (times
+    its `vertex_gain`, (V,), when given), capped; the unseen smoothed from the seen; folds put
+    back. Also the (V,) mask of seen vertices."""
+    v = mesh.vertices_m
+    weight = steps.weights.sum(axis=0)
+    shift = (steps.weights * steps.steps_m).T @ steps.forwards
     seen = weight > 0
     shift[seen] /= weight[seen, None]
+    if vertex_gain is not None:
+        shift *= vertex_gain[:, None]
     length = np.linalg.norm(shift, axis=1)
-    shift *= np.minimum(1.0, cap / np.maximum(length, 1e-30))[:, None]
+    shift *= np.minimum(1.0, steps.cap_m / np.maximum(length, 1e-30))[:, None]
+    mean_op = mean_operator(mesh.faces, mesh.vertex_count)
     if config.unseen_follow_moves:
         moved = v + _smooth_unseen(shift, seen, mean_op, config.unseen_iterations)
     else:

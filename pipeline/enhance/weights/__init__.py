@@ -9,11 +9,13 @@ DEFAULT_FILES = {
     "vae": "vae.safetensors",
     "ldm": "ldm.safetensors",
     "selector": "selector.safetensors",
+    "ldm_gain": "ldm_gain.safetensors",
+    "regressor_gain": "regressor_gain.safetensors",
 }
 
 
 def shipped_bytes(name: str) -> bytes:
-    """The bytes of a shipped weights file ('regressor', 'vae', 'ldm' or 'selector').
+    """The bytes of a shipped weights file (`DEFAULT_FILES`' keys).
 
     Raises ValueError when the package was built without it.
     """

@@ -164,3 +164,28 @@ def test_learning_rate_and_loss_mask_options_reach_every_stage(tmp_path):
     assert {config[f"{s}_budget"]["lr"] for s in ("regressor", "vae", "ldm", "finetune")} == {
         2e-4
     }
+
+
+def test_train_gain_stage_writes_a_gain_per_network_and_its_card(tmp_path):
+    """The gain stage enhances with the --init networks (here the shipped ones) and writes a
+    vertex gain network per method, which `enhance_mesh` loads from the weights given."""
+    from dataclasses import replace
+    from importlib import resources
+
+    from pipeline.enhance import EnhanceConfig, enhance_mesh
+
+    shipped = resources.files("pipeline.enhance.weights")
+    result, out = _train_tiny(tmp_path, "gain", "--init", str(shipped))
+    assert result.exit_code == 0, result.output
+    report = json.loads((out / "training.json").read_text())
+    assert set(report["gain"]["methods"]) == {"ldm", "regressor"}
+    assert report["gain"]["methods"]["ldm"]["steps"] == 5
+    assert set(report["gain"]["validation"]) == set(report["data"]["validation"])
+    assert "| ldm, fixed gain | ldm, learned gains |" in (out / "MODEL_CARD.md").read_text()
+    _, mesh = procedural_meshes(np.random.default_rng(2), 1)[0]
+    weights = {"regressor_gain": (out / "regressor_gain.safetensors").read_bytes()}
+    config = EnhanceConfig(method="regressor", resolution=32, min_noise_ratio=0,
+                           remesh_iterations=0, weights=weights)
+    shipped_gain = replace(config, weights=None)
+    assert not np.allclose(enhance_mesh(mesh, config).vertices_m,
+                           enhance_mesh(mesh, shipped_gain).vertices_m)

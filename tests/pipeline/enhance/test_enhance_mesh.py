@@ -45,7 +45,8 @@ def test_the_update_follows_the_chosen_share_of_the_network_correction(
     def moves(gain: float) -> np.ndarray:
         out = enhance_mesh(noisy, EnhanceConfig(method="regressor", resolution=96,
                                                 remesh_iterations=0, correction_gain=gain,
-                                                min_noise_ratio=0.0, presmooth_learned=learned))
+                                                learned_gain=False, min_noise_ratio=0.0,
+                                                presmooth_learned=learned))
         return out.vertices_m - base.vertices_m
 
     half, full = moves(0.5), moves(1.0)
@@ -55,6 +56,27 @@ def test_the_update_follows_the_chosen_share_of_the_network_correction(
     # Twice the correction, twice the move, short of the moves that the update's gates (step
     # cap, one-surface lookup) drop once the correction grows.
     assert 1.6 < float(np.median(ratio)) <= 2.05
+
+
+@pytest.mark.parametrize("method", ["ldm", "regressor"])
+def test_learned_gains_give_each_vertex_its_own_share_of_the_correction(
+        noisy_sphere: tuple[TriangleMesh, TriangleMesh], method: str) -> None:
+    """With the shipped vertex gains each seen vertex follows its own share of the whole
+    correction (gain 1), between none and twice it, and the shares differ between vertices."""
+    _, noisy = noisy_sphere
+    base = enhance_mesh(noisy, EnhanceConfig(method="selector"))
+
+    def moves(**options) -> np.ndarray:
+        out = enhance_mesh(noisy, EnhanceConfig(method=method, resolution=96, remesh_iterations=0,
+                                                min_noise_ratio=0.0, **options))
+        return out.vertices_m - base.vertices_m
+
+    full, learned = moves(correction_gain=1.0, learned_gain=False), moves()
+    moved = np.linalg.norm(full, axis=1) > 1e-5
+    assert moved.mean() > 0.5
+    along = np.sum(learned[moved] * full[moved], axis=1) / np.sum(full[moved] ** 2, axis=1)
+    assert np.all(along > -1e-6) and np.all(along < 2.0 + 1e-6)
+    assert np.percentile(along, 90) - np.percentile(along, 10) > 0.05
 
 
 def test_a_correction_gain_out_of_range_is_named() -> None:

@@ -116,3 +116,28 @@ def test_a_move_that_turns_a_face_over_is_put_back_and_a_harmless_one_kept():
     after[far] *= 1.001  # a millimetre out
     out = unfolded(before, after, mesh.faces)
     assert np.array_equal(out[tip], before[tip]) and np.array_equal(out[far], after[far])
+
+
+def test_a_uniform_vertex_gain_moves_as_far_as_that_share_of_the_change(noisy_sphere):
+    """Following the change, a vertex gain g on every vertex moves the mesh as the depth change
+    scaled by g does (the step is linear in the change); gain 1 is no gain at all."""
+    from pipeline.enhance.update import apply_view_steps, view_steps
+
+    _, noisy = noisy_sphere
+    views = make_views(noisy.vertices_m, view_directions(6), 128)
+    r = render_depth(noisy, views)
+    cfg = UpdateConfig(unseen_iterations=0, follow_change=True)
+    rng = np.random.default_rng(3)
+    change = (rng.normal(size=r.depth_n.shape) * 0.002 / views.depth_range_m).astype(np.float32)
+    enhanced = np.where(r.valid, r.depth_n + change, r.depth_n).astype(np.float32)
+    steps = view_steps(noisy, r, enhanced, cfg)
+    ones = np.ones(noisy.vertex_count)
+    plain, seen = apply_view_steps(noisy, steps, cfg)
+    assert np.array_equal(apply_view_steps(noisy, steps, cfg, ones)[0].vertices_m,
+                          plain.vertices_m)
+    assert np.array_equal(plain.vertices_m, update_vertices(noisy, r, enhanced, cfg)[0].vertices_m)
+    scaled = np.where(r.valid, r.depth_n + 0.3 * change, r.depth_n).astype(np.float32)
+    by_depth, _ = update_vertices(noisy, r, scaled, cfg)
+    by_gain, _ = apply_view_steps(noisy, steps, cfg, 0.3 * ones)
+    assert np.allclose(by_gain.vertices_m, by_depth.vertices_m, atol=1e-9)
+    assert np.abs(by_gain.vertices_m - noisy.vertices_m)[seen].max() > 1e-4
