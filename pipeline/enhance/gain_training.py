@@ -3,7 +3,6 @@ on them, and a loss that is the moved vertex's squared distance to the truth."""
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 
@@ -17,6 +16,7 @@ from pipeline.enhance.device import resolve_device
 from pipeline.enhance.inference import vertex_gains
 from pipeline.enhance.metrics import signed_c2m
 from pipeline.enhance.models.vertex_gain import VertexGainConfig, VertexGainNet
+from pipeline.enhance.row_fit import fit_rows
 from pipeline.enhance.selector_training import noisy_draw
 from pipeline.enhance.update import UpdateConfig, ViewSteps, apply_view_steps, view_steps
 from pipeline.enhance.vertex_gain import MEAN_STEP, gain_features
@@ -140,23 +140,13 @@ def train_gain(
     target = torch.from_numpy(np.concatenate([e.target for e in examples]))
     model = VertexGainNet(config.model)
     model.set_normalisation(features)
-    opt = torch.optim.Adam(model.parameters(), lr=config.lr)
-    gen = torch.Generator().manual_seed(seed)
-    t0, running, step = time.monotonic(), 0.0, 0
-    while step < config.steps and time.monotonic() - t0 < config.minutes * 60:
-        for group in opt.param_groups:
-            group["lr"] = config.lr * 0.5 * (1 + np.cos(np.pi * step / config.steps))
-        i = torch.randint(0, len(features), (config.batch,), generator=gen)
-        loss = gain_loss(model(features[i]), features[i], target[i])
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-        step += 1
-        running = 0.98 * running + 0.02 * loss.item() if step > 1 else loss.item()
-        if progress is not None and step % 20 == 0:
-            progress(step / config.steps, f"gain loss {running:.4f}")
-    model.eval()
-    return model, {"steps": step, "train_seconds": time.monotonic() - t0, "final_loss": running}
+
+    def batch_loss(i: torch.Tensor) -> torch.Tensor:
+        return gain_loss(model(features[i]), features[i], target[i])
+
+    log = fit_rows(model, len(features), batch_loss, config.steps, config.minutes, config.batch,
+                   config.lr, seed, progress, "gain")
+    return model, log
 
 
 def validate_gain(

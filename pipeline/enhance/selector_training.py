@@ -3,7 +3,6 @@ blend's squared distance to the truth."""
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -16,6 +15,7 @@ from pipeline.enhance.data import isotropic, noisy_along_normals, unit_extent
 from pipeline.enhance.inference import selector_blend
 from pipeline.enhance.metrics import signed_c2m
 from pipeline.enhance.models.twicing_selector import SelectorConfig, TwicingSelector
+from pipeline.enhance.row_fit import fit_rows
 from pipeline.enhance.twicing_blend import twicing_candidates
 from pipeline.mesh import TriangleMesh
 
@@ -109,24 +109,13 @@ def train_selector(
     errors = torch.from_numpy(np.concatenate([e.errors for e in examples]))
     model = TwicingSelector(config.model)
     model.set_normalisation(features)
-    opt = torch.optim.Adam(model.parameters(), lr=config.lr)
-    gen = torch.Generator().manual_seed(seed)
-    t0, running, step = time.monotonic(), 0.0, 0
-    while step < config.steps and time.monotonic() - t0 < config.minutes * 60:
-        lr = config.lr * 0.5 * (1 + np.cos(np.pi * step / config.steps))
-        for group in opt.param_groups:
-            group["lr"] = lr
-        i = torch.randint(0, len(features), (config.batch,), generator=gen)
-        loss = blend_loss(model(features[i]), errors[i])
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-        step += 1
-        running = 0.98 * running + 0.02 * loss.item() if step > 1 else loss.item()
-        if progress is not None and step % 20 == 0:
-            progress(step / config.steps, f"selector loss {running:.4f}")
-    model.eval()
-    return model, {"steps": step, "train_seconds": time.monotonic() - t0, "final_loss": running}
+
+    def batch_loss(i: torch.Tensor) -> torch.Tensor:
+        return blend_loss(model(features[i]), errors[i])
+
+    log = fit_rows(model, len(features), batch_loss, config.steps, config.minutes, config.batch,
+                   config.lr, seed, progress, "selector")
+    return model, log
 
 
 def validate_selector(

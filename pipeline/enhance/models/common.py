@@ -107,3 +107,38 @@ def pad_to_multiple(x: torch.Tensor, multiple: int) -> tuple[torch.Tensor, tuple
     if ph or pw:
         x = nnf.pad(x, (0, pw, 0, ph), mode="replicate")
     return x, (h, w)
+
+
+class RowMLP(nn.Module):
+    """Two hidden SiLU layers on per-row (per-vertex) features, which are squashed by a signed
+    log (they span decades between flat parts and creases) and standardised by the training
+    features' statistics (`set_normalisation`)."""
+
+    feature_mean: torch.Tensor
+    feature_std: torch.Tensor
+
+    def __init__(self, features: int, hidden: int, outputs: int) -> None:
+        super().__init__()
+        self.register_buffer("feature_mean", torch.zeros(features))
+        self.register_buffer("feature_std", torch.ones(features))
+        self.mlp = nn.Sequential(
+            nn.Linear(features, hidden),
+            nn.SiLU(),
+            nn.Linear(hidden, hidden),
+            nn.SiLU(),
+            nn.Linear(hidden, outputs),
+        )
+
+    @staticmethod
+    def squash(features: torch.Tensor) -> torch.Tensor:
+        return torch.sign(features) * torch.log1p(features.abs())
+
+    def set_normalisation(self, features: torch.Tensor) -> None:
+        """Standardises inputs by the mean and std of these (training) features."""
+        x = self.squash(features)
+        self.feature_mean.copy_(x.mean(0))
+        self.feature_std.copy_(x.std(0) + 1e-6)
+
+    def logits(self, features: torch.Tensor) -> torch.Tensor:
+        """(B, outputs) the MLP's raw outputs for (B, features) rows."""
+        return self.mlp((self.squash(features) - self.feature_mean) / self.feature_std)

@@ -6,8 +6,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-from torch import nn
 
+from pipeline.enhance.models.common import RowMLP
 from pipeline.enhance.twicing_blend import TwicingBlendConfig
 
 
@@ -28,37 +28,12 @@ class SelectorConfig:
                                   self.feature_rings)
 
 
-class TwicingSelector(nn.Module):
+class TwicingSelector(RowMLP):
     """(V, F) features -> (V, K) convex weights over the K candidates."""
 
-    feature_mean: torch.Tensor
-    feature_std: torch.Tensor
-
     def __init__(self, config: SelectorConfig) -> None:
-        super().__init__()
+        super().__init__(config.blend.feature_count, config.hidden, len(config.iterations))
         self.config = config
-        features = config.blend.feature_count
-        self.register_buffer("feature_mean", torch.zeros(features))
-        self.register_buffer("feature_std", torch.ones(features))
-        self.mlp = nn.Sequential(
-            nn.Linear(features, config.hidden),
-            nn.SiLU(),
-            nn.Linear(config.hidden, config.hidden),
-            nn.SiLU(),
-            nn.Linear(config.hidden, len(config.iterations)),
-        )
-
-    @staticmethod
-    def squash(features: torch.Tensor) -> torch.Tensor:
-        """Signed log: squared residuals span decades between flat parts and creases."""
-        return torch.sign(features) * torch.log1p(features.abs())
-
-    def set_normalisation(self, features: torch.Tensor) -> None:
-        """Standardises inputs by the mean and std of these (training) features."""
-        x = self.squash(features)
-        self.feature_mean.copy_(x.mean(0))
-        self.feature_std.copy_(x.std(0) + 1e-6)
 
     def forward(self, features: torch.Tensor) -> torch.Tensor:
-        x = (self.squash(features) - self.feature_mean) / self.feature_std
-        return torch.softmax(self.mlp(x), dim=1)
+        return torch.softmax(self.logits(features), dim=1)

@@ -6,8 +6,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-from torch import nn
 
+from pipeline.enhance.models.common import RowMLP
 from pipeline.enhance.vertex_gain import GAIN_FEATURES
 
 
@@ -22,36 +22,12 @@ class VertexGainConfig:
     """Gains lie in (0, max_gain): never against the correction, never far past it."""
 
 
-class VertexGainNet(nn.Module):
+class VertexGainNet(RowMLP):
     """(V, F) features -> (V,) gains in (0, max_gain); an untrained net gives about half of it."""
 
-    feature_mean: torch.Tensor
-    feature_std: torch.Tensor
-
     def __init__(self, config: VertexGainConfig) -> None:
-        super().__init__()
+        super().__init__(config.features, config.hidden, 1)
         self.config = config
-        self.register_buffer("feature_mean", torch.zeros(config.features))
-        self.register_buffer("feature_std", torch.ones(config.features))
-        self.mlp = nn.Sequential(
-            nn.Linear(config.features, config.hidden),
-            nn.SiLU(),
-            nn.Linear(config.hidden, config.hidden),
-            nn.SiLU(),
-            nn.Linear(config.hidden, 1),
-        )
-
-    @staticmethod
-    def squash(features: torch.Tensor) -> torch.Tensor:
-        """Signed log: steps and spreads span decades between flat parts and creases."""
-        return torch.sign(features) * torch.log1p(features.abs())
-
-    def set_normalisation(self, features: torch.Tensor) -> None:
-        """Standardises inputs by the mean and std of these (training) features."""
-        x = self.squash(features)
-        self.feature_mean.copy_(x.mean(0))
-        self.feature_std.copy_(x.std(0) + 1e-6)
 
     def forward(self, features: torch.Tensor) -> torch.Tensor:
-        x = (self.squash(features) - self.feature_mean) / self.feature_std
-        return self.config.max_gain * torch.sigmoid(self.mlp(x)[:, 0])
+        return self.config.max_gain * torch.sigmoid(self.logits(features)[:, 0])
