@@ -120,7 +120,8 @@ def train(
                 report[stage] = entry
                 report_path.write_text(json.dumps(report, indent=1))
                 typer.echo(f"{stage}: {json.dumps(entry['validation'])}")
-    if "gain" in wanted and not (resume and (out / "ldm_gain.safetensors").exists()):
+    gains_done = all((out / f"{m}_gain.safetensors").exists() for m in cfg.gain.methods)
+    if "gain" in wanted and not (resume and gains_done):
         report["gain"] = gain_stage(out, train_set, val_set, cfg.gain, seed,
                                     network_weights(out, init))
     report_path.write_text(json.dumps(report, indent=1))

@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse as sp
 from numpy.typing import NDArray
 
 from pipeline.enhance.baselines import mean_operator
@@ -77,6 +78,9 @@ class ViewSteps:
     """(V, 3) the (neighbour-averaged) unit vertex normals the visibility was judged with."""
     cap_m: float
     """Largest move of a vertex."""
+    mean_op: sp.csr_matrix
+    """(V, V) the mesh's neighbour-mean operator, which the normals were smoothed with and the
+    unseen vertices are smoothed with (built once for both)."""
 
     def along_normals_m(self) -> NDArray[np.float64]:
         """(K, V) each view's step projected onto the vertex normal."""
@@ -133,7 +137,8 @@ def view_steps(
         visible &= target_ok & (np.abs(step) < cap)
         steps[k] = np.where(visible, step, 0.0)
         weights[k] = np.where(visible, cos**2, 0.0)
-    return ViewSteps(steps, weights, np.asarray(views.forwards, np.float64), normals, cap)
+    return ViewSteps(steps, weights, np.asarray(views.forwards, np.float64), normals, cap,
+                     mean_op)
 
 
 def update_vertices(
@@ -170,11 +175,10 @@ def apply_view_steps(
         shift *= vertex_gain[:, None]
     length = np.linalg.norm(shift, axis=1)
     shift *= np.minimum(1.0, steps.cap_m / np.maximum(length, 1e-30))[:, None]
-    mean_op = mean_operator(mesh.faces, mesh.vertex_count)
     if config.unseen_follow_moves:
-        moved = v + _smooth_unseen(shift, seen, mean_op, config.unseen_iterations)
+        moved = v + _smooth_unseen(shift, seen, steps.mean_op, config.unseen_iterations)
     else:
-        moved = _smooth_unseen(v + shift, seen, mean_op, config.unseen_iterations)
+        moved = _smooth_unseen(v + shift, seen, steps.mean_op, config.unseen_iterations)
     return mesh.with_vertices(unfolded(v, moved, mesh.faces)), seen
 
 

@@ -1,4 +1,5 @@
 import numpy as np
+import scipy.sparse as sp
 import torch
 from hypothesis import given
 from hypothesis import strategies as st
@@ -12,7 +13,11 @@ AXES = np.array([[0, 0, -1], [0, 0, 1], [-1, 0, 0], [1, 0, 0], [0, -1, 0], [0, 1
 
 def _steps(steps_m, weights, normals) -> ViewSteps:
     return ViewSteps(np.asarray(steps_m, float), np.asarray(weights, float), AXES[:len(steps_m)],
-                     np.asarray(normals, float), cap_m=1.0)
+                     np.asarray(normals, float), cap_m=1.0, mean_op=_no_neighbours(len(normals)))
+
+
+def _no_neighbours(vertices: int) -> sp.csr_matrix:
+    return sp.identity(vertices, format="csr")
 
 
 def test_features_of_agreeing_and_disagreeing_views():
@@ -66,5 +71,6 @@ def test_features_read_alike_with_every_view_repeated(seed, copies):
     steps_m, weights, normals = _random_views(seed, 3, 10)
     once = gain_features(_steps(steps_m, weights, normals), 0.005)
     many = ViewSteps(np.tile(steps_m, (copies, 1)), np.tile(weights, (copies, 1)),
-                     np.tile(AXES[:3], (copies, 1)), normals, cap_m=1.0)
+                     np.tile(AXES[:3], (copies, 1)), normals, cap_m=1.0,
+                     mean_op=_no_neighbours(len(normals)))
     assert np.allclose(gain_features(many, 0.005), once, atol=1e-5)
