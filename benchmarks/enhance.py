@@ -55,17 +55,23 @@ ISSUE_CLASSICAL = ("taubin", "laplacian", "bilateral")
 
 
 def bunny_protocol(meshes: Path, seed: int, edge_m: float = 0.005, name: str = "stanford-bunny"):
-    """(ground truth, noisy) meshes of the protocol (the bunny, or another mesh by `name`)."""
+    """(ground truth, noisy) meshes of the protocol (the bunny, or another mesh by `name`; one
+    the remesher refuses as non-manifold is repaired first, as the pipeline's remesh does)."""
     import gpytoolbox
 
     from pipeline.io.mesh_io import read_mesh
 
+    from pipeline.mesh_repair import repair
+
     m = read_mesh(meshes / f"{name}.obj")
     v = m.vertices_m
     v = (v - 0.5 * (v.min(0) + v.max(0))) / np.ptp(v[:, 1])
-    vr, fr = gpytoolbox.remesh_botsch(
-        v.astype(np.float64), m.faces.astype(np.int32), 10, edge_m, True
-    )
+    f = m.faces.astype(np.int32)
+    try:
+        vr, fr = gpytoolbox.remesh_botsch(v.astype(np.float64), f, 10, edge_m, True)
+    except ValueError:  # non-manifold input (beetle, suzanne): the pipeline's repair first
+        v, f64, _ = repair(v, f)
+        vr, fr = gpytoolbox.remesh_botsch(v, f64.astype(np.int32), 10, edge_m, True)
     truth = TriangleMesh(np.asarray(vr, np.float64), np.asarray(fr, np.int32))
     noisy = noisy_along_normals(truth, 0.01, np.random.default_rng(seed))
     return truth, noisy

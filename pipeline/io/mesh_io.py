@@ -11,7 +11,8 @@ from pipeline.mesh import TriangleMesh
 
 
 def read_mesh(path: str | Path) -> TriangleMesh:
-    """Reads a triangle mesh, merging duplicate vertices; all objects of the file are joined.
+    """Reads a triangle mesh, merging duplicate vertices (also across texture and normal seams);
+    all objects of the file are joined.
 
     Vertex colours are kept when the file has them; normals are dropped (stages recompute
     them from the merged connectivity). Raises ValueError naming the file when it cannot be
@@ -28,6 +29,9 @@ def read_mesh(path: str | Path) -> TriangleMesh:
         raise ValueError(f"{path}: not a readable mesh ({exc})") from None
     if not isinstance(loaded, trimesh.Trimesh):
         raise ValueError(f"{path}: holds no triangle mesh")
+    # trimesh keeps a vertex split where its texture coordinates or normals differ (UV seams,
+    # creases); the geometry stages would see each seam as an open boundary.
+    loaded.merge_vertices(merge_tex=True, merge_norm=True)
     faces = np.asarray(loaded.faces, dtype=np.int64)
     vertices = np.asarray(loaded.vertices, dtype=np.float64)
     if faces.size == 0 or vertices.size == 0:

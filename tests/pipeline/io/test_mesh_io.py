@@ -64,6 +64,21 @@ def test_obj_duplicate_vertices_are_merged(tmp_path: Path) -> None:
     assert mesh.faces.dtype == np.int32 and mesh.vertices_m.dtype == np.float64
 
 
+def test_obj_texture_and_normal_seams_are_merged(tmp_path: Path) -> None:
+    # The square's diagonal is a UV seam and a crease: each triangle has its own texture
+    # coordinates and normals at the shared corners, which must not split the surface.
+    (tmp_path / "seam.obj").write_text(
+        "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\n"
+        "vt 0 0\nvt 1 0\nvt 1 1\nvt 0.5 0.5\nvt 0.9 0.9\nvt 0 1\n"
+        "vn 0 0 1\nvn 0 0.1 1\n"
+        "f 1/1/1 2/2/1 3/3/1\nf 1/4/2 3/5/2 4/6/2\n")
+    mesh = read_mesh(tmp_path / "seam.obj")
+    assert mesh.vertex_count == 4 and mesh.face_count == 2
+    edges = np.sort(mesh.faces[:, [[0, 1], [1, 2], [2, 0]]].reshape(-1, 2), axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    assert np.sum(counts == 2) == 1  # the diagonal is shared, not two boundary edges
+
+
 @pytest.mark.parametrize("name, content", [("empty.obj", ""), ("junk.ply", "not a mesh at all"),
                                            ("points.obj", "v 0 0 0\nv 1 0 0\n")])
 def test_unreadable_files_name_the_file(tmp_path: Path, name: str, content: str) -> None:
