@@ -60,7 +60,6 @@ def bunny_protocol(meshes: Path, seed: int, edge_m: float = 0.005, name: str = "
     import gpytoolbox
 
     from pipeline.io.mesh_io import read_mesh
-
     from pipeline.mesh_repair import repair
 
     m = read_mesh(meshes / f"{name}.obj")

@@ -63,15 +63,15 @@ class EnhanceConfig:
     """The pre-smoothing is the selector's blend of twicings (`learned_twicing`, the
     `selector` weights; its candidates and pilot are fixed by those weights), in place of
     `presmooth_adaptive`'s choice; `presmooth_iterations` 0 still turns pre-smoothing off."""
-    correction_gain: float = 0.35
+    correction_gain: float = 0.7
     """Share of the networks' depth correction (enhanced minus base depth) the update
     follows, every vertex alike, when `learned_gain` is off. Chosen on the validation meshes
     (spot, fandisk; not the bunny) under the benchmark's protocol
-    (`benchmarks/enhance_gain.py`), for the shipped LDM (trained on the mesh mix with the
-    tight loss mask): C2M RMS at gains 0.1 / 0.2 / 0.35 / 0.5 / 0.7 was 0.775 / 0.775 /
-    0.777 / 0.783 / 0.794 mm on spot and 0.723 / 0.716 / 0.708 / 0.704 / 0.704 on fandisk;
-    0.35 gives the lowest mean (the pre-smoothed mesh itself: 0.777 and 0.732). The weights
-    before, trained with the loose mask, were over-confident and wanted 0.1."""
+    (`benchmarks/enhance_gain.py`), for the shipped LDM: C2M RMS at gains 0.1 / 0.2 / 0.35 /
+    0.5 / 0.7 / 1.0 was 0.686 / 0.683 / 0.679 / 0.676 / 0.674 / 0.673 mm on spot and 0.723 /
+    0.716 / 0.708 / 0.704 / 0.704 / 0.715 on fandisk; 0.7 gives the lowest mean. (0.35 was
+    chosen while spot was read split along its texture seams, which the networks handled
+    worse.)"""
     learned_gain: bool = True
     """Each vertex follows its own share of the networks' correction, given by the method's
     vertex gain network (`vertex_gain.py`; weights `ldm_gain`, `regressor_gain`) from how its
