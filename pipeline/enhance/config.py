@@ -83,18 +83,21 @@ class EnhanceConfig:
     (`noise_to_edge_ratio`) is below this; 0 always enhances. Their pre-smoothing removes
     detail they cannot restore, so below some noise they do harm: on spot and fandisk under
     the benchmark's protocol with the noise amplitude swept (`benchmarks/enhance_gate.py`) the
-    LDM's result matched the input's error at ratios 0.059 and 0.048 with the selector's
-    pre-smoothing and the vertex gains (0.053 and 0.044 with one fixed gain, 0.072 and 0.064
+    LDM's result matched the input's error at ratios 0.057 and 0.048 with the selector's
+    pre-smoothing and the vertex gains (0.059 on spot read split along its texture seams;
+    0.053 and 0.044 with one fixed gain, 0.072 and 0.064
     with adaptive twicing, 0.11 and 0.14 with ten Laplacian iterations). A reconstruction of
     the synthetic bunny capture measures 0.01 (enhanced without the gate: 0.70 -> 0.86 mm)."""
     update: UpdateConfig = field(default_factory=UpdateConfig)
     """How vertices follow the enhanced depth."""
     remesh_iterations: int = 1
     """Rounds of a light isotropic remesh at the mesh's own mean edge length after the
-    view-based update (the update itself already puts back moves that turn a face over); 0
-    keeps the connectivity. On the benchmark's bunny it takes the LDM from 0.927 to 0.925 mm
-    C2M RMS and its normal error from 6.3 to 6.2 degrees, and costs 4.5 of the 9.7 s (2 CPU
-    cores, fresh process); on a GPU it would be nearly all of the time."""
+    view-based update (the update itself already puts back moves that turn a face over),
+    followed by the remesh stage's angle clean-up; 0 keeps the connectivity. On the
+    benchmark's bunny it takes the LDM from 0.9192 to 0.9157 mm C2M RMS but the reverse RMS
+    from 1.028 to 1.038 mm; on meshes with slivers (suzanne, beetle) it does harm
+    (`benchmarks/enhance_remesh.py`). It is 2.4 of the 5.8 s on 2 CPU cores and would be
+    nearly all of the time on a GPU."""
     device: str = "auto"
     """Torch device for the networks: auto (CUDA when present), cpu or cuda."""
     weights: dict[str, bytes] | None = None
