@@ -23,10 +23,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from enhance import bunny_protocol  # noqa: E402
+from enhance import bunny_protocol, score  # noqa: E402
 
 from pipeline.enhance import EnhanceConfig, enhance_mesh  # noqa: E402
-from pipeline.enhance.metrics import c2m_summary, normal_error_deg  # noqa: E402
 from pipeline.mesh import TriangleMesh, mean_edge_length_m  # noqa: E402
 from pipeline.remesh import RemeshConfig, angle_stats, remesh  # noqa: E402
 
@@ -34,9 +33,8 @@ DEFAULT_MESHES = ("stanford-bunny", "spot", "fandisk", "teapot", "suzanne", "bee
 
 
 def scores(mesh: TriangleMesh, truth: TriangleMesh) -> dict:
-    s = c2m_summary(mesh, truth)
-    return {"c2m_rms_mm": s["c2m_rms_mm"], "reverse_rms_mm": s["reverse_rms_mm"],
-            "normal_error_deg": normal_error_deg(mesh, truth), "vertices": mesh.vertex_count}
+    """`enhance.py`'s scores (C2M, reverse, normal error), with the vertex count."""
+    return {**score(mesh, truth, 0.0), "vertices": mesh.vertex_count}
 
 
 def mesh_report(meshes: Path, name: str) -> dict:
