@@ -43,6 +43,10 @@ class RemeshConfig:
     """Triangles with a larger angle get their long edge flipped after remeshing."""
     cleanup_passes: int = 3
     """Rounds of the angle clean-up."""
+    only_if_better_angles: bool = False
+    """Keep the kernel's result only where it leaves fewer faces outside the angle criteria
+    than it was given; else its input goes on to the clean-up. For a light remesh at the
+    mesh's own edge length, whose one job is the triangles' shape."""
     min_component_share: float = 0.01
     """Pieces smaller than this share of the largest (in faces) are dropped first."""
     isolate: bool = True
@@ -144,6 +148,10 @@ def angle_stats(vertices_m: FloatArray, faces: Faces, config: RemeshConfig) -> d
             "share_above_max": float(np.mean(angles.max(axis=1) > config.max_angle_deg))}
 
 
+def _outside(angles: dict[str, float]) -> float:
+    return angles["share_below_min"] + angles["share_above_max"]
+
+
 def remesh(mesh: TriangleMesh, config: RemeshConfig) -> tuple[TriangleMesh, dict[str, Any]]:
     """The mesh remeshed isotropically; stats hold repairs, angle figures and any warning."""
     vertices, faces, removed = repair(mesh.vertices_m, mesh.faces, config.min_component_share)
@@ -157,6 +165,10 @@ def remesh(mesh: TriangleMesh, config: RemeshConfig) -> tuple[TriangleMesh, dict
         else:
             result, warning = _kernel(vertices, faces, config.target_edge_length_m,
                                       config.iterations), None
+        if result is not None and config.only_if_better_angles:
+            stats["kernel_kept"] = _outside(angle_stats(*result, config)) < _outside(
+                angle_stats(vertices, faces, config))
+            result = result if stats["kernel_kept"] else None
         if result is not None:
             vertices, faces = result
         stats["warning"] = warning and f"{warning}; kept the unremeshed mesh"

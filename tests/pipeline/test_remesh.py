@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -127,3 +128,20 @@ def test_the_kernel_equals_gpytoolbox_remesh_botsch(open_mesh: bool) -> None:
     if open_mesh:
         held = np.unique(edge_table(f)[0][np.bincount(edge_table(f)[1].ravel()) == 1])
         assert np.array_equal(ours[0][: len(held)], v[held])  # boundary kept, first
+
+
+def test_only_if_better_angles_keeps_the_kernel_where_it_mends_the_triangles() -> None:
+    """The unevenly triangulated sphere comes out of the kernel better shaped, so its result
+    is kept; a 2 m cylinder of slivers comes out worse, so the clean-up gets the input."""
+    sphere = _bumpy_sphere()
+    cyl = trimesh.creation.cylinder(0.1, 2.0, sections=64)
+    cylinder = TriangleMesh(np.asarray(cyl.vertices), np.asarray(cyl.faces, np.int32))
+    for mesh, kept in ((sphere, True), (cylinder, False)):
+        config = RemeshConfig(target_edge_length_m=float(np.mean(_edge_lengths(mesh))),
+                              iterations=1, only_if_better_angles=True, min_component_share=0.0)
+        out, stats = remesh(mesh, config)
+        assert stats["kernel_kept"] is kept
+        plain, _ = remesh(mesh, replace(config, only_if_better_angles=False,
+                                        iterations=config.iterations if kept else 0))
+        assert out.face_count == plain.face_count
+        np.testing.assert_allclose(out.vertices_m, plain.vertices_m)
