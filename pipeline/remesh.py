@@ -43,10 +43,10 @@ class RemeshConfig:
     """Triangles with a larger angle get their long edge flipped after remeshing."""
     cleanup_passes: int = 3
     """Rounds of the angle clean-up."""
-    only_if_better_angles: bool = False
-    """Keep the kernel's result only where it leaves fewer faces outside the angle criteria
-    than it was given; else its input goes on to the clean-up. For a light remesh at the
-    mesh's own edge length, whose one job is the triangles' shape."""
+    skip_kernel_if_angles_worsen: bool = False
+    """Drop the kernel's result where it leaves more faces outside the angle criteria than
+    it was given, and clean up its input instead. For a light remesh at the mesh's own edge
+    length, whose one job is the triangles' shape."""
     min_component_share: float = 0.01
     """Pieces smaller than this share of the largest (in faces) are dropped first."""
     isolate: bool = True
@@ -165,8 +165,8 @@ def remesh(mesh: TriangleMesh, config: RemeshConfig) -> tuple[TriangleMesh, dict
         else:
             result, warning = _kernel(vertices, faces, config.target_edge_length_m,
                                       config.iterations), None
-        if result is not None and config.only_if_better_angles:
-            stats["kernel_kept"] = _outside(angle_stats(*result, config)) < _outside(
+        if result is not None and config.skip_kernel_if_angles_worsen:
+            stats["kernel_kept"] = _outside(angle_stats(*result, config)) <= _outside(
                 angle_stats(vertices, faces, config))
             result = result if stats["kernel_kept"] else None
         if result is not None:
