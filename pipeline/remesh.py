@@ -43,10 +43,10 @@ class RemeshConfig:
     """Triangles with a larger angle get their long edge flipped after remeshing."""
     cleanup_passes: int = 3
     """Rounds of the angle clean-up."""
-    skip_kernel_if_angles_worsen: bool = False
-    """Drop the kernel's result where it leaves more faces outside the angle criteria than
-    it was given, and clean up its input instead. For a light remesh at the mesh's own edge
-    length, whose one job is the triangles' shape."""
+    keep_better_shaped: bool = False
+    """Also clean up the kernel's input alone, and keep that where it comes out with fewer
+    faces outside the angle criteria than the kernel's result (the kernel's on a tie). For a
+    light remesh at the mesh's own edge length, whose one job is the triangles' shape."""
     min_component_share: float = 0.01
     """Pieces smaller than this share of the largest (in faces) are dropped first."""
     isolate: bool = True
@@ -158,6 +158,7 @@ def remesh(mesh: TriangleMesh, config: RemeshConfig) -> tuple[TriangleMesh, dict
     if len(faces) == 0:
         raise ValueError("mesh: nothing left to remesh after repair (degenerate input)")
     stats: dict[str, Any] = {"repair_removed_faces": removed, "warning": None}
+    given, result = (vertices, faces), None
     if config.iterations > 0:
         if config.isolate:
             result, warning = run_isolated(vertices, faces, config.target_edge_length_m,
@@ -165,19 +166,26 @@ def remesh(mesh: TriangleMesh, config: RemeshConfig) -> tuple[TriangleMesh, dict
         else:
             result, warning = _kernel(vertices, faces, config.target_edge_length_m,
                                       config.iterations), None
-        if result is not None and config.skip_kernel_if_angles_worsen:
-            stats["kernel_kept"] = _outside(angle_stats(*result, config)) <= _outside(
-                angle_stats(vertices, faces, config))
-            result = result if stats["kernel_kept"] else None
         if result is not None:
             vertices, faces = result
         stats["warning"] = warning and f"{warning}; kept the unremeshed mesh"
     stats["angles_before_cleanup"] = angle_stats(vertices, faces, config)
-    vertices, faces, ops = enforce_angles(vertices, faces, config.min_angle_deg,
-                                          config.max_angle_deg, config.cleanup_passes)
-    stats["angle_cleanup"] = ops
+    vertices, faces, stats["angle_cleanup"] = _cleanup(vertices, faces, config)
     stats["angles"] = angle_stats(vertices, faces, config)
+    if result is not None and config.keep_better_shaped and _outside(stats["angles"]) > 0:
+        alone = _cleanup(*given, config)
+        angles = angle_stats(alone[0], alone[1], config)
+        stats["kernel_kept"] = _outside(stats["angles"]) <= _outside(angles)
+        if not stats["kernel_kept"]:
+            vertices, faces, stats["angle_cleanup"] = alone
+            stats["angles"] = angles
     return TriangleMesh(vertices_m=vertices, faces=faces), stats
+
+
+def _cleanup(vertices_m: FloatArray, faces: Faces, config: RemeshConfig
+             ) -> tuple[FloatArray, Faces, dict[str, int]]:
+    return enforce_angles(vertices_m, faces, config.min_angle_deg, config.max_angle_deg,
+                          config.cleanup_passes)
 
 
 if __name__ == "__main__":

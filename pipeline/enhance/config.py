@@ -93,11 +93,11 @@ class EnhanceConfig:
     remesh_iterations: int = 1
     """Rounds of a light isotropic remesh at the mesh's own mean edge length after the
     view-based update (the update itself already puts back moves that turn a face over),
-    followed by the remesh stage's angle clean-up; the kernel's result is dropped where it
-    leaves more faces outside the angle criteria than the update did (`light_remesh`); 0
-    keeps the connectivity. On the benchmark's bunny it takes the LDM from 0.9192 to 0.9157 mm
-    C2M RMS but the reverse RMS from 1.028 to 1.038 mm (`benchmarks/enhance_remesh.py`). It
-    is 2.4 of the 5.8 s on 2 CPU cores and would be nearly all of the time on a GPU."""
+    followed by the remesh stage's angle clean-up, or the clean-up alone where that leaves
+    fewer faces outside the angle criteria (`light_remesh`); 0 keeps the connectivity. On
+    the benchmark's bunny it takes the LDM from 0.9192 to 0.9157 mm C2M RMS but the reverse
+    RMS from 1.028 to 1.038 mm (`benchmarks/enhance_remesh.py`). It is 2.4 of the 5.8 s on 2
+    CPU cores and would be nearly all of the time on a GPU."""
     device: str = "auto"
     """Torch device for the networks: auto (CUDA when present), cpu or cuda."""
     weights: dict[str, bytes] | None = None
@@ -245,17 +245,16 @@ def skips_enhancement(mesh: TriangleMesh, config: EnhanceConfig) -> bool:
 
 
 def light_remesh(mesh: TriangleMesh, iterations: int) -> TriangleMesh:
-    """The mesh remeshed at its own mean edge length (vertices projected back onto it), unless
-    that leaves more faces outside the angle criteria than the update did, then its angles
-    cleaned up. Under the benchmark's protocol the isotropic kernel left beetle's and
-    suzanne's updates with more such faces, not fewer, and further from the truth both ways
-    (C2M RMS 0.985 / 1.062 mm, against 0.950 / 1.021 with the clean-up alone), while it took
-    0.2-1.9 % off the C2M RMS of the bunny, spot, fandisk and teapot, which it left with as
-    few or fewer (`benchmarks/enhance_remesh.py`)."""
+    """The mesh remeshed at its own mean edge length (vertices projected back onto it) and its
+    angles cleaned up; or only cleaned up, where that leaves fewer faces outside the angle
+    criteria. Under the benchmark's protocol the isotropic kernel left beetle and suzanne
+    worse shaped than the clean-up alone and further from the truth both ways (C2M RMS
+    0.985 / 1.062 mm, against 0.950 / 1.021), while on the other eight meshes it left them as
+    well or better shaped and took 0.3-1.9 % off the C2M RMS (`benchmarks/enhance_remesh.py`)."""
     from pipeline.remesh import RemeshConfig, remesh
 
     config = RemeshConfig(target_edge_length_m=mean_edge_length_m(mesh), iterations=iterations,
-                          skip_kernel_if_angles_worsen=True, min_component_share=0.0)
+                          keep_better_shaped=True, min_component_share=0.0)
     return remesh(mesh, config)[0]
 
 
