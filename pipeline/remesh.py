@@ -172,13 +172,14 @@ def remesh(mesh: TriangleMesh, config: RemeshConfig) -> tuple[TriangleMesh, dict
     stats["angles_before_cleanup"] = angle_stats(vertices, faces, config)
     vertices, faces, stats["angle_cleanup"] = _cleanup(vertices, faces, config)
     stats["angles"] = angle_stats(vertices, faces, config)
-    if result is not None and config.keep_better_shaped and _outside(stats["angles"]) > 0:
-        alone = _cleanup(*given, config)
-        angles = angle_stats(alone[0], alone[1], config)
-        stats["kernel_kept"] = _outside(stats["angles"]) <= _outside(angles)
-        if not stats["kernel_kept"]:
-            vertices, faces, stats["angle_cleanup"] = alone
-            stats["angles"] = angles
+    if result is not None and config.keep_better_shaped:
+        stats["kernel_kept"] = True
+        if _outside(stats["angles"]) > 0:
+            alone = _cleanup(*given, config)
+            angles = angle_stats(alone[0], alone[1], config)
+            if _outside(angles) < _outside(stats["angles"]):
+                vertices, faces, stats["angle_cleanup"] = alone
+                stats.update(angles=angles, kernel_kept=False)
     return TriangleMesh(vertices_m=vertices, faces=faces), stats
 
 

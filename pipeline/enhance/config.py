@@ -250,7 +250,7 @@ def light_remesh(mesh: TriangleMesh, iterations: int) -> TriangleMesh:
     criteria. Under the benchmark's protocol the isotropic kernel left beetle and suzanne
     worse shaped than the clean-up alone and further from the truth both ways (C2M RMS
     0.985 / 1.062 mm, against 0.950 / 1.021), while on the other eight meshes it left them as
-    well or better shaped and took 0.3-1.9 % off the C2M RMS (`benchmarks/enhance_remesh.py`)."""
+    well or better shaped and took 0.25-1.9 % off the C2M RMS (`benchmarks/enhance_remesh.py`)."""
     from pipeline.remesh import RemeshConfig, remesh
 
     config = RemeshConfig(target_edge_length_m=mean_edge_length_m(mesh), iterations=iterations,
