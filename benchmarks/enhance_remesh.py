@@ -9,8 +9,8 @@ result in full (one round of the isotropic kernel, then the angle clean-up: what
 RMS (result vertices to the truth, which depends on where the vertices lie), the reverse RMS
 (truth vertices to the result surface, which does not) and the normal error, with the share of
 the update's faces outside the remesh stage's angle criteria, and of each result's. Last, what
-the enhance stage keeps (`light_remesh`: the full remesh, or the clean-up alone where that
-leaves fewer faces outside the criteria).
+the enhance stage keeps (`light_remesh`: the full remesh, or the clean-up alone where the
+kernel adds faces outside the criteria).
 """
 
 from __future__ import annotations

@@ -43,10 +43,11 @@ class RemeshConfig:
     """Triangles with a larger angle get their long edge flipped after remeshing."""
     cleanup_passes: int = 3
     """Rounds of the angle clean-up."""
-    keep_better_shaped: bool = False
-    """Also clean up the kernel's input alone, and keep that where it comes out with fewer
-    faces outside the angle criteria than the kernel's result (the kernel's on a tie). For a
-    light remesh at the mesh's own edge length, whose one job is the triangles' shape."""
+    max_kernel_added_outside: float | None = None
+    """Drop the kernel's result where it leaves a share of faces outside the angle criteria
+    greater by more than this than the share it was given, and clean up its input instead
+    (None: always keep it). For a light remesh at the mesh's own edge length, whose one job
+    is the triangles' shape."""
     min_component_share: float = 0.01
     """Pieces smaller than this share of the largest (in faces) are dropped first."""
     isolate: bool = True
@@ -61,6 +62,8 @@ class RemeshConfig:
             raise ValueError("remesh: iterations and cleanup_passes must be >= 0")
         if not 0 <= self.min_angle_deg < 60 < self.max_angle_deg <= 180:
             raise ValueError("remesh: need 0 <= min_angle_deg < 60 < max_angle_deg <= 180")
+        if self.max_kernel_added_outside is not None and not 0 <= self.max_kernel_added_outside < 1:
+            raise ValueError("remesh: max_kernel_added_outside must be None or in [0, 1)")
         if not self.timeout_s > 0:
             raise ValueError("remesh: timeout_s must be > 0")
 
@@ -158,7 +161,6 @@ def remesh(mesh: TriangleMesh, config: RemeshConfig) -> tuple[TriangleMesh, dict
     if len(faces) == 0:
         raise ValueError("mesh: nothing left to remesh after repair (degenerate input)")
     stats: dict[str, Any] = {"repair_removed_faces": removed, "warning": None}
-    given, result = (vertices, faces), None
     if config.iterations > 0:
         if config.isolate:
             result, warning = run_isolated(vertices, faces, config.target_edge_length_m,
@@ -166,27 +168,19 @@ def remesh(mesh: TriangleMesh, config: RemeshConfig) -> tuple[TriangleMesh, dict
         else:
             result, warning = _kernel(vertices, faces, config.target_edge_length_m,
                                       config.iterations), None
+        if result is not None and config.max_kernel_added_outside is not None:
+            added = (_outside(angle_stats(*result, config))
+                     - _outside(angle_stats(vertices, faces, config)))
+            stats["kernel_kept"] = added <= config.max_kernel_added_outside
+            result = result if stats["kernel_kept"] else None
         if result is not None:
             vertices, faces = result
         stats["warning"] = warning and f"{warning}; kept the unremeshed mesh"
     stats["angles_before_cleanup"] = angle_stats(vertices, faces, config)
-    vertices, faces, stats["angle_cleanup"] = _cleanup(vertices, faces, config)
+    vertices, faces, stats["angle_cleanup"] = enforce_angles(
+        vertices, faces, config.min_angle_deg, config.max_angle_deg, config.cleanup_passes)
     stats["angles"] = angle_stats(vertices, faces, config)
-    if result is not None and config.keep_better_shaped:
-        stats["kernel_kept"] = True
-        if _outside(stats["angles"]) > 0:
-            alone = _cleanup(*given, config)
-            angles = angle_stats(alone[0], alone[1], config)
-            if _outside(angles) < _outside(stats["angles"]):
-                vertices, faces, stats["angle_cleanup"] = alone
-                stats.update(angles=angles, kernel_kept=False)
     return TriangleMesh(vertices_m=vertices, faces=faces), stats
-
-
-def _cleanup(vertices_m: FloatArray, faces: Faces, config: RemeshConfig
-             ) -> tuple[FloatArray, Faces, dict[str, int]]:
-    return enforce_angles(vertices_m, faces, config.min_angle_deg, config.max_angle_deg,
-                          config.cleanup_passes)
 
 
 if __name__ == "__main__":

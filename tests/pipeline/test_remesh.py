@@ -130,19 +130,22 @@ def test_the_kernel_equals_gpytoolbox_remesh_botsch(open_mesh: bool) -> None:
         assert np.array_equal(ours[0][: len(held)], v[held])  # boundary kept, first
 
 
-def test_keep_better_shaped_keeps_the_kernel_where_it_mends_the_triangles() -> None:
-    """The unevenly triangulated sphere comes out of the kernel better shaped than out of
-    the clean-up alone, so the kernel's result is kept; a 2 m cylinder of slivers comes out
-    of it worse, so the clean-up alone is kept."""
+def test_the_kernel_is_dropped_where_it_adds_faces_outside_the_angle_criteria() -> None:
+    """The unevenly triangulated sphere comes out of the kernel better shaped, so its result
+    is kept; a 2 m cylinder of slivers comes out with more bad faces, so the clean-up gets
+    the input."""
     sphere = _bumpy_sphere()
     cyl = trimesh.creation.cylinder(0.1, 2.0, sections=64)
     cylinder = TriangleMesh(np.asarray(cyl.vertices), np.asarray(cyl.faces, np.int32))
     for mesh, kept in ((sphere, True), (cylinder, False)):
         config = RemeshConfig(target_edge_length_m=float(np.mean(_edge_lengths(mesh))),
-                              iterations=1, keep_better_shaped=True, min_component_share=0.0)
+                              iterations=1, max_kernel_added_outside=0.0,
+                              min_component_share=0.0)
         out, stats = remesh(mesh, config)
         assert stats["kernel_kept"] is kept
-        plain, _ = remesh(mesh, replace(config, keep_better_shaped=False,
+        plain, _ = remesh(mesh, replace(config, max_kernel_added_outside=None,
                                         iterations=config.iterations if kept else 0))
         assert out.face_count == plain.face_count
         np.testing.assert_allclose(out.vertices_m, plain.vertices_m)
+    with pytest.raises(ValueError, match="max_kernel_added_outside"):
+        RemeshConfig(max_kernel_added_outside=-0.1)
