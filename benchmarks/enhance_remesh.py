@@ -32,7 +32,8 @@ from pipeline.enhance.config import light_remesh  # noqa: E402
 from pipeline.mesh import TriangleMesh, mean_edge_length_m  # noqa: E402
 from pipeline.remesh import RemeshConfig, angle_stats, remesh  # noqa: E402
 
-DEFAULT_MESHES = ("stanford-bunny", "spot", "fandisk", "teapot", "suzanne", "beetle")
+DEFAULT_MESHES = ("stanford-bunny", "spot", "fandisk", "teapot", "cow", "cheburashka", "homer",
+                  "rocker-arm", "suzanne", "beetle")
 
 
 def scores(mesh: TriangleMesh, truth: TriangleMesh, config: RemeshConfig) -> dict:
