@@ -161,6 +161,7 @@ def remesh(mesh: TriangleMesh, config: RemeshConfig) -> tuple[TriangleMesh, dict
     if len(faces) == 0:
         raise ValueError("mesh: nothing left to remesh after repair (degenerate input)")
     stats: dict[str, Any] = {"repair_removed_faces": removed, "warning": None}
+    before: dict[str, float] | None = None
     if config.iterations > 0:
         if config.isolate:
             result, warning = run_isolated(vertices, faces, config.target_edge_length_m,
@@ -169,14 +170,16 @@ def remesh(mesh: TriangleMesh, config: RemeshConfig) -> tuple[TriangleMesh, dict
             result, warning = _kernel(vertices, faces, config.target_edge_length_m,
                                       config.iterations), None
         if result is not None and config.max_kernel_added_outside is not None:
-            added = (_outside(angle_stats(*result, config))
-                     - _outside(angle_stats(vertices, faces, config)))
-            stats["kernel_kept"] = added <= config.max_kernel_added_outside
-            result = result if stats["kernel_kept"] else None
+            given, made = angle_stats(vertices, faces, config), angle_stats(*result, config)
+            stats["kernel_kept"] = _outside(made) - _outside(given) <= (
+                config.max_kernel_added_outside)
+            before, result = (made, result) if stats["kernel_kept"] else (given, None)
         if result is not None:
             vertices, faces = result
         stats["warning"] = warning and f"{warning}; kept the unremeshed mesh"
-    stats["angles_before_cleanup"] = angle_stats(vertices, faces, config)
+    if before is None:
+        before = angle_stats(vertices, faces, config)
+    stats["angles_before_cleanup"] = before
     vertices, faces, stats["angle_cleanup"] = enforce_angles(
         vertices, faces, config.min_angle_deg, config.max_angle_deg, config.cleanup_passes)
     stats["angles"] = angle_stats(vertices, faces, config)

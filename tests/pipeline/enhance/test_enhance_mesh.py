@@ -125,8 +125,11 @@ def test_progress_names_every_stage_in_order_and_ends_at_one() -> None:
 
 
 def _outside_share(mesh: TriangleMesh) -> float:
-    angles = triangle_angles_deg(mesh.vertices_m, mesh.faces)
-    return float(np.mean(angles.min(axis=1) < 20) + np.mean(angles.max(axis=1) > 120))
+    """Share of faces outside the remesh stage's angle criteria."""
+    from pipeline.remesh import RemeshConfig, angle_stats
+
+    angles = angle_stats(mesh.vertices_m, mesh.faces, RemeshConfig())
+    return angles["share_below_min"] + angles["share_above_max"]
 
 
 @pytest.mark.parametrize("shape", ["jittered sphere", "long cylinder"])
