@@ -14,6 +14,8 @@ import io
 import os
 import subprocess
 import sys
+import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -27,6 +29,8 @@ from pipeline.mesh_repair import edge_table, faces_per_edge, repair, triangle_an
 
 FloatArray = NDArray[np.float64]
 Faces = NDArray[np.int32]
+KernelOutcome = tuple[tuple[FloatArray, Faces] | None, str | None]
+"""The kernel's (vertices, faces), or None and why it failed."""
 
 
 @dataclass(frozen=True)
@@ -107,12 +111,14 @@ def _child_main() -> None:
     sys.stdout.buffer.write(out.getvalue())
 
 
-def run_isolated(vertices_m: FloatArray, faces: Faces, edge_m: float, iterations: int,
-                 timeout_s: float) -> tuple[tuple[FloatArray, Faces] | None, str | None]:
-    """The kernel in a child interpreter: (result, None), or (None, why it failed).
+def start_isolated(vertices_m: FloatArray, faces: Faces, edge_m: float, iterations: int,
+                   timeout_s: float) -> Callable[[], KernelOutcome]:
+    """Starts the kernel in a child interpreter and returns a call that waits for it:
+    (result, None), or (None, why it failed). The caller may work meanwhile.
 
     A plain child process rather than multiprocessing: it never re-imports the caller's
-    main module, so it works from any script, worker or test runner.
+    main module, so it works from any script, worker or test runner. A thread feeds and
+    drains its pipes, so neither side blocks on a full pipe while the caller works.
     """
     request = io.BytesIO()
     np.savez(request, vertices_m=np.asarray(vertices_m, np.float64),
@@ -121,19 +127,44 @@ def run_isolated(vertices_m: FloatArray, faces: Faces, edge_m: float, iterations
     package_root = str(Path(__file__).resolve().parents[1])
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join(p for p in (package_root, env.get("PYTHONPATH")) if p)
+    child = subprocess.Popen([sys.executable, "-m", "pipeline.remesh"], stdin=subprocess.PIPE,
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env)
+    outcome: list[KernelOutcome] = []
+
+    def talk() -> None:
+        try:
+            stdout, stderr = child.communicate(request.getvalue(), timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            child.kill()
+            child.communicate()
+            outcome.append((None, f"remesh kernel timed out after {timeout_s:g} s"))
+            return
+        outcome.append(_read_outcome(child.returncode, stdout, stderr))
+
+    talker = threading.Thread(target=talk, daemon=True)
+    talker.start()
+
+    def wait() -> KernelOutcome:
+        talker.join()
+        return outcome[0]
+
+    return wait
+
+
+def run_isolated(vertices_m: FloatArray, faces: Faces, edge_m: float, iterations: int,
+                 timeout_s: float) -> KernelOutcome:
+    """The kernel in a child interpreter (`start_isolated`), waited for."""
+    return start_isolated(vertices_m, faces, edge_m, iterations, timeout_s)()
+
+
+def _read_outcome(returncode: int, stdout: bytes, stderr: bytes) -> KernelOutcome:
+    if returncode < 0:
+        return None, f"remesh kernel crashed (signal {-returncode})"
+    if returncode != 0:
+        lines = stderr.decode(errors="replace").strip().splitlines()
+        return None, f"remesh kernel failed: {lines[-1] if lines else returncode}"
     try:
-        done = subprocess.run([sys.executable, "-m", "pipeline.remesh"],
-                              input=request.getvalue(), capture_output=True, env=env,
-                              timeout=timeout_s, check=False)
-    except subprocess.TimeoutExpired:
-        return None, f"remesh kernel timed out after {timeout_s:g} s"
-    if done.returncode < 0:
-        return None, f"remesh kernel crashed (signal {-done.returncode})"
-    if done.returncode != 0:
-        lines = done.stderr.decode(errors="replace").strip().splitlines()
-        return None, f"remesh kernel failed: {lines[-1] if lines else done.returncode}"
-    try:
-        with np.load(io.BytesIO(done.stdout), allow_pickle=False) as data:
+        with np.load(io.BytesIO(stdout), allow_pickle=False) as data:
             return (np.asarray(data["vertices_m"], np.float64),
                     np.asarray(data["faces"], np.int32)), None
     except (ValueError, OSError, KeyError) as exc:
@@ -156,34 +187,56 @@ def _outside(angles: dict[str, float]) -> float:
 
 
 def remesh(mesh: TriangleMesh, config: RemeshConfig) -> tuple[TriangleMesh, dict[str, Any]]:
-    """The mesh remeshed isotropically; stats hold repairs, angle figures and any warning."""
+    """The mesh remeshed isotropically; stats hold repairs, angle figures and any warning.
+
+    Where the kernel's result may be dropped (`max_kernel_added_outside`) and it runs in a
+    child, the input is cleaned up while the child runs: that is the answer wherever the
+    kernel is dropped or fails, so choosing costs no second clean-up after the kernel's.
+    """
     vertices, faces, removed = repair(mesh.vertices_m, mesh.faces, config.min_component_share)
     if len(faces) == 0:
         raise ValueError("mesh: nothing left to remesh after repair (degenerate input)")
     stats: dict[str, Any] = {"repair_removed_faces": removed, "warning": None}
-    before: dict[str, float] | None = None
-    if config.iterations > 0:
-        if config.isolate:
-            result, warning = run_isolated(vertices, faces, config.target_edge_length_m,
-                                           config.iterations, config.timeout_s)
-        else:
-            result, warning = _kernel(vertices, faces, config.target_edge_length_m,
-                                      config.iterations), None
-        if result is not None and config.max_kernel_added_outside is not None:
-            given, made = angle_stats(vertices, faces, config), angle_stats(*result, config)
-            stats["kernel_kept"] = _outside(made) - _outside(given) <= (
-                config.max_kernel_added_outside)
-            before, result = (made, result) if stats["kernel_kept"] else (given, None)
-        if result is not None:
-            vertices, faces = result
-        stats["warning"] = warning and f"{warning}; kept the unremeshed mesh"
-    if before is None:
-        before = angle_stats(vertices, faces, config)
-    stats["angles_before_cleanup"] = before
-    vertices, faces, stats["angle_cleanup"] = enforce_angles(
-        vertices, faces, config.min_angle_deg, config.max_angle_deg, config.cleanup_passes)
-    stats["angles"] = angle_stats(vertices, faces, config)
-    return TriangleMesh(vertices_m=vertices, faces=faces), stats
+    if config.iterations == 0:
+        return _cleaned_up(vertices, faces, config, stats)
+    limit = config.max_kernel_added_outside
+    input_cleaned = None
+    if config.isolate:
+        wait = start_isolated(vertices, faces, config.target_edge_length_m,
+                              config.iterations, config.timeout_s)
+        if limit is not None:
+            input_cleaned = _cleaned_up(vertices, faces, config, dict(stats))
+        result, warning = wait()
+    else:
+        result, warning = _kernel(vertices, faces, config.target_edge_length_m,
+                                  config.iterations), None
+    stats["warning"] = warning and f"{warning}; kept the unremeshed mesh"
+    if result is not None and limit is not None:
+        given = (input_cleaned[1]["angles_before_cleanup"] if input_cleaned is not None
+                 else angle_stats(vertices, faces, config))
+        made = angle_stats(*result, config)
+        stats["kernel_kept"] = _outside(made) - _outside(given) <= limit
+        if stats["kernel_kept"]:
+            return _cleaned_up(*result, config, stats, made)
+        result = None
+    if result is not None:
+        return _cleaned_up(*result, config, stats)
+    if input_cleaned is not None:
+        input_cleaned[1].update(stats)
+        return input_cleaned
+    return _cleaned_up(vertices, faces, config, stats)
+
+
+def _cleaned_up(vertices_m: FloatArray, faces: Faces, config: RemeshConfig,
+                stats: dict[str, Any], before: dict[str, float] | None = None
+                ) -> tuple[TriangleMesh, dict[str, Any]]:
+    """The angle clean-up of a mesh, and `stats` with its angle figures added (`before`: the
+    mesh's `angle_stats`, where they are already known)."""
+    stats["angles_before_cleanup"] = before or angle_stats(vertices_m, faces, config)
+    vertices_m, faces, stats["angle_cleanup"] = enforce_angles(
+        vertices_m, faces, config.min_angle_deg, config.max_angle_deg, config.cleanup_passes)
+    stats["angles"] = angle_stats(vertices_m, faces, config)
+    return TriangleMesh(vertices_m=vertices_m, faces=faces), stats
 
 
 if __name__ == "__main__":

@@ -72,6 +72,13 @@ def test_a_timeout_keeps_the_input_and_warns() -> None:
                                              timeout_s=0.5))
     assert "timed out" in stats["warning"]
     assert out.face_count > 0.9 * source.face_count
+    # Where the kernel may be dropped, the input is cleaned up while it runs: that answer.
+    config = RemeshConfig(target_edge_length_m=0.003, iterations=50, timeout_s=0.5,
+                          max_kernel_added_outside=0.0)
+    chosen, chosen_stats = remesh(source, config)
+    assert "timed out" in chosen_stats["warning"] and "kernel_kept" not in chosen_stats
+    np.testing.assert_array_equal(chosen.faces, out.faces)
+    assert chosen_stats["angles"] == stats["angles"]
 
 
 def test_repairs_come_before_the_kernel() -> None:
@@ -130,17 +137,20 @@ def test_the_kernel_equals_gpytoolbox_remesh_botsch(open_mesh: bool) -> None:
         assert np.array_equal(ours[0][: len(held)], v[held])  # boundary kept, first
 
 
-def test_the_kernel_is_dropped_where_it_adds_faces_outside_the_angle_criteria() -> None:
+@pytest.mark.parametrize("isolate", [True, False])
+def test_the_kernel_is_dropped_where_it_adds_faces_outside_the_angle_criteria(
+    isolate: bool,
+) -> None:
     """The unevenly triangulated sphere comes out of the kernel better shaped, so its result
     is kept; a 2 m cylinder of slivers comes out with more bad faces, so the clean-up gets
-    the input."""
+    the input (cleaned up while the kernel's child runs, where it has one)."""
     sphere = _bumpy_sphere()
     cyl = trimesh.creation.cylinder(0.1, 2.0, sections=64)
     cylinder = TriangleMesh(np.asarray(cyl.vertices), np.asarray(cyl.faces, np.int32))
     for mesh, kept in ((sphere, True), (cylinder, False)):
         config = RemeshConfig(target_edge_length_m=float(np.mean(_edge_lengths(mesh))),
                               iterations=1, max_kernel_added_outside=0.0,
-                              min_component_share=0.0)
+                              min_component_share=0.0, isolate=isolate)
         out, stats = remesh(mesh, config)
         assert stats["kernel_kept"] is kept
         plain, _ = remesh(mesh, replace(config, max_kernel_added_outside=None,
