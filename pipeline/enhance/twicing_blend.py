@@ -61,23 +61,27 @@ class FieldOps:
     one smoothing step, one neighbour average, and how fields go there and come back."""
 
     step: Callable[[Any], Any]
-    """y + lam (M y - y), lam = 0.5, with M the mean operator."""
+    """y + lam (M y - y), lam = 0.5, with M the mean operator; float64 (positions)."""
     average: Callable[[Any], Any]
-    """M y."""
-    to_field: Callable[[NDArray[np.float64]], Any]
-    to_numpy: Callable[[Any], NDArray[np.float64]]
+    """M y, float32: it serves only the features, which the selector reads in float32, and
+    the averages of a 294 k-vertex mesh's 30 feature columns take 0.04 s a pass against
+    0.08 s in float64."""
+    to_field: Callable[[NDArray], Any]
+    """A field there, its dtype kept."""
+    to_numpy: Callable[[Any], NDArray]
 
 
 def field_ops(mean_op: sp.csr_matrix, device: str | None) -> FieldOps:
-    """scipy on the host (None), or torch float64 on `device` ('cpu', 'cuda'), where a
-    step is one sparse product with (I + M) / 2: torch runs it on all cores, or the GPU."""
+    """scipy on the host (None), or torch on `device` ('cpu', 'cuda'), where a step is one
+    sparse product with (I + M) / 2: torch runs it on all cores, or the GPU."""
+    mean32 = mean_op.astype(np.float32)
     if device is None:
-        return FieldOps(lambda y: y + 0.5 * (mean_op @ y - y), lambda y: mean_op @ y,
+        return FieldOps(lambda y: y + 0.5 * (mean_op @ y - y), lambda y: mean32 @ y,
                         _same, _same)
     import torch
 
     def to_torch(x: NDArray) -> Any:
-        return torch.from_numpy(np.ascontiguousarray(x, dtype=np.float64)).to(device)
+        return torch.from_numpy(np.ascontiguousarray(x)).to(device)
 
     def sparse(a: sp.csr_matrix) -> Any:
         with warnings.catch_warnings():
@@ -85,12 +89,11 @@ def field_ops(mean_op: sp.csr_matrix, device: str | None) -> FieldOps:
             return torch.sparse_csr_tensor(
                 torch.from_numpy(a.indptr.astype(np.int64)),
                 torch.from_numpy(a.indices.astype(np.int64)),
-                torch.from_numpy(a.data.astype(np.float64)), size=a.shape,
-                check_invariants=False,
+                torch.from_numpy(a.data), size=a.shape, check_invariants=False,
             ).to(device)
 
     half_step = sparse((0.5 * sp.identity(mean_op.shape[0]) + 0.5 * mean_op).tocsr())
-    average = sparse(mean_op)
+    average = sparse(mean32)
     return FieldOps(lambda y: half_step @ y, lambda y: average @ y, to_torch,
                     lambda t: t.cpu().numpy())
 
@@ -137,10 +140,11 @@ def twicing_candidates(
         pilot_move = np.sum((out[:, 3:] - pilot) * normals, axis=1) / noise_std_m
         from_pilot = np.sum((out[:, :3] - pilot) * normals, axis=1) / noise_std_m
         columns += [pilot_move**2, pilot_move, from_pilot**2]
-    scales = _multiscale(ops.average, ops.to_field(np.stack(columns, axis=1)),
+    scales = _multiscale(ops.average,
+                         ops.to_field(np.stack(columns, axis=1).astype(np.float32)),
                          config.feature_rings)
     features = np.concatenate([ops.to_numpy(a) for a in scales], axis=1)
-    return TwicingCandidates(np.stack(candidates), features.astype(np.float32), noise_std_m)
+    return TwicingCandidates(np.stack(candidates), features, noise_std_m)
 
 
 def _twicings(step: Callable[[Any], Any], x, counts: tuple[int, ...], passes: int) -> list:

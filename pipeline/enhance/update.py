@@ -188,13 +188,17 @@ def unfolded(before_m: NDArray, after_m: NDArray, faces: NDArray[np.int32]) -> N
     independently, and a fold is the one defect the connectivity cannot show."""
     normals_before = face_normals(before_m, faces)
     out = after_m.copy()
-    while True:
-        # Each round puts back at least one moved vertex, so it ends at the latest at before.
-        folded = np.sum(face_normals(out, faces) * normals_before, axis=1) < 0
-        if not folded.any():
-            return out
-        corners = faces[folded].ravel()
+    check = np.arange(len(faces))
+    # Each round puts back at least one moved vertex, so it ends at the latest at before;
+    # only the faces at the vertices put back can change, so only they are checked again.
+    while len(check):
+        turned = np.sum(face_normals(out, faces[check]) * normals_before[check], axis=1) < 0
+        corners = faces[check[turned]].ravel()
         out[corners] = before_m[corners]
+        put_back = np.zeros(len(out), dtype=bool)
+        put_back[corners] = True
+        check = np.nonzero(put_back[faces].any(axis=1))[0]
+    return out
 
 
 def _smooth_unseen(v: NDArray, seen: NDArray[np.bool_], mean_op, iterations: int) -> NDArray:
