@@ -1,7 +1,8 @@
 """Remeshing (DESIGN step 7): isotropic remeshing to a target edge length, angle criteria.
 
 The kernel is gpytoolbox's ``remesh_botsch`` (edge split, collapse, flip, tangential
-relaxation, projection back onto the input). It is native code that has crashed the whole
+relaxation, projection back onto the input), given boundary edges no longer than it would
+leave interior ones (it holds the boundary). It is native code that has crashed the whole
 process on some inputs (cow.obj), so the mesh is repaired first and the kernel runs in a
 child process: a crash, an error or a timeout there leaves the caller running, with the
 repaired input returned and a warning in the stats. Minimum/maximum angle criteria are then
@@ -25,7 +26,13 @@ from numpy.typing import NDArray
 
 from pipeline.angle_cleanup import enforce_angles
 from pipeline.mesh import TriangleMesh
-from pipeline.mesh_repair import edge_table, faces_per_edge, repair, triangle_angles_deg
+from pipeline.mesh_repair import (
+    edge_table,
+    faces_per_edge,
+    repair,
+    split_boundary_edges,
+    triangle_angles_deg,
+)
 
 FloatArray = NDArray[np.float64]
 Faces = NDArray[np.int32]
@@ -201,14 +208,16 @@ def remesh(mesh: TriangleMesh, config: RemeshConfig) -> tuple[TriangleMesh, dict
         return _cleaned_up(vertices, faces, config, stats)
     limit = config.max_kernel_added_outside
     input_cleaned = None
+    # The kernel holds the boundary, so it cannot split a long boundary edge itself.
+    kernel_input = split_boundary_edges(vertices, faces, config.target_edge_length_m)
     if config.isolate:
-        wait = start_isolated(vertices, faces, config.target_edge_length_m,
-                              config.iterations, config.timeout_s)
+        wait = start_isolated(*kernel_input, config.target_edge_length_m, config.iterations,
+                              config.timeout_s)
         if limit is not None:
             input_cleaned = _cleaned_up(vertices, faces, config, dict(stats))
         result, warning = wait()
     else:
-        result, warning = _kernel(vertices, faces, config.target_edge_length_m,
+        result, warning = _kernel(*kernel_input, config.target_edge_length_m,
                                   config.iterations), None
     stats["warning"] = warning and f"{warning}; kept the unremeshed mesh"
     if result is not None and limit is not None:
