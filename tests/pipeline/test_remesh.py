@@ -159,3 +159,24 @@ def test_the_kernel_is_dropped_where_it_adds_faces_outside_the_angle_criteria(
         np.testing.assert_allclose(out.vertices_m, plain.vertices_m)
     with pytest.raises(ValueError, match="max_kernel_added_outside"):
         RemeshConfig(max_kernel_added_outside=-0.1)
+
+
+def test_a_coarse_open_mesh_is_remeshed_without_hubs_at_its_boundary() -> None:
+    """The kernel holds the boundary and splits none of its edges: a coarse mesh cut open,
+    remeshed finely, used to keep each boundary vertex as the hub of a fan of long edges."""
+    sphere = trimesh.creation.icosphere(subdivisions=1, radius=0.5)
+    v = np.asarray(sphere.vertices, np.float64)
+    f = np.asarray(sphere.faces, np.int32)
+    f = f[v[f].mean(axis=1)[:, 2] < 0.2]
+    config = RemeshConfig(target_edge_length_m=0.04, iterations=6, cleanup_passes=0,
+                          min_angle_deg=1.0, max_angle_deg=179.0)
+    out, stats = remesh(TriangleMesh(v, f), config)
+    assert stats["warning"] is None
+    edges, opposite = edge_table(out.faces)
+    valence = np.bincount(edges.ravel())
+    boundary = np.zeros(out.vertex_count, dtype=bool)
+    boundary[edges[np.bincount(opposite.ravel()) == 1].ravel()] = True
+    assert valence.max() <= 10
+    lengths = _edge_lengths(out)
+    assert lengths[boundary[edges].any(axis=1)].max() < 2 * 0.04
+    assert _distance(out.vertices_m, TriangleMesh(v, f)).max() < 2e-3
