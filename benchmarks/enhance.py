@@ -288,7 +288,8 @@ def main() -> None:
     truth, noisy = bunny_protocol(meshes, args.seed, name=args.mesh)
     report: dict = {
         "protocol": {
-            "mesh": f"{args.mesh}, 1 m high, remeshed to 5 mm edges (gpytoolbox remesh_botsch)",
+            "mesh": f"{args.mesh}, 1 m high, long boundary edges split, remeshed to 5 mm edges "
+                    "(gpytoolbox remesh_botsch)",
             "vertices": truth.vertex_count,
             "noise": "uniform +-1 cm along vertex normals",
             "seed": args.seed,

@@ -95,9 +95,10 @@ class EnhanceConfig:
     view-based update (the update itself already puts back moves that turn a face over),
     followed by the remesh stage's angle clean-up; the kernel's result is dropped where it
     adds faces outside the angle criteria (`light_remesh`); 0 keeps the connectivity. On
-    the benchmark's bunny it takes the LDM from 0.9192 to 0.9157 mm C2M RMS but the reverse
-    RMS from 1.028 to 1.038 mm (`benchmarks/enhance_remesh.py`). It is 2.4 of the 5.8 s on 2
-    CPU cores and would be nearly all of the time on a GPU."""
+    the benchmark's bunny it takes the LDM from 0.9206 to 0.9172 mm C2M RMS (0.9192 to 0.9157
+    under the protocol before long boundary edges were split, where it took the reverse RMS
+    from 1.028 to 1.038 mm; `benchmarks/enhance_remesh.py`). It is 3.9 of the 7.0 s on 2 CPU
+    cores and would be nearly all of the time on a GPU."""
     device: str = "auto"
     """Torch device for the networks: auto (CUDA when present), cpu or cuda."""
     weights: dict[str, bytes] | None = None
