@@ -131,8 +131,6 @@ def repair(vertices_m: FloatArray, faces: Faces, min_component_share: float = 0.
     return out_v, out_f, removed
 
 
-
-
 def split_boundary_edges(vertices_m: FloatArray, faces: Faces, target_edge_m: float
                          ) -> tuple[FloatArray, Faces]:
     """Edges longer than 4/3 of `target_edge_m` with an end on the boundary bisected, in
@@ -142,38 +140,21 @@ def split_boundary_edges(vertices_m: FloatArray, faces: Faces, target_edge_m: fl
     collapses them, so a coarse mesh's boundary vertices stay hubs of long fans: beetle
     remeshed to 5 mm edges kept a boundary vertex with 514 neighbours, its edges up to 18 cm
     long. Longest-edge bisection (Rivara): a face is only ever cut across its longest edge,
-    so its pieces do not become ever thinner; a wanted edge that is not the longest of a face
-    beside it waits until that face's longest, and so on along the chain, are split first.
-    Faces with a repeated corner are left alone.
+    so its pieces do not become ever thinner. Faces with a repeated corner are left alone.
     """
     v, f = np.asarray(vertices_m, np.float64), np.asarray(faces, np.int32)
     while True:
         edges, opposite = edge_table(f)
-        uses = faces_per_edge(opposite, len(edges))
-        on_boundary = np.zeros(len(v), dtype=bool)
-        on_boundary[edges[uses == 1].ravel()] = True
         length_m = np.linalg.norm(v[edges[:, 0]] - v[edges[:, 1]], axis=1)
         ok_face = ~(f[:, [0, 1, 2]] == f[:, [1, 2, 0]]).any(axis=1)
-        wanted = (length_m > target_edge_m * 4 / 3) & on_boundary[edges].any(axis=1)
-        start = ok_face & wanted[opposite].any(axis=1)
-        if not start.any():
-            return v, f
+        # Each face's longest edge, ties to the lower index.
         rank = np.empty(len(edges), dtype=np.int64)
         rank[np.lexsort((np.arange(len(edges)), -length_m))] = np.arange(len(edges))
         corner = np.argmin(rank[opposite], axis=1)
         longest = opposite[np.arange(len(f)), corner]
-        # An edge is split where it is the longest of every face using it.
-        terminal = np.bincount(longest[ok_face], minlength=len(edges)) == uses
-        needed = np.zeros(len(edges), dtype=bool)
-        needed[longest[start]] = True
-        while True:  # faces beside a needed edge need their own longest split first
-            grown = needed.copy()
-            grown[longest[ok_face & needed[opposite].any(axis=1)]] = True
-            if (grown == needed).all():
-                break
-            needed = grown
-        split_edge = needed & terminal
-        if not split_edge.any():  # only where a face with a repeated corner blocks the chain
+        split_edge = _edges_to_bisect(edges, opposite, length_m > target_edge_m * 4 / 3,
+                                      longest, ok_face)
+        if not split_edge.any():
             return v, f
         new_index = np.full(len(edges), -1, dtype=np.int64)
         new_index[split_edge] = len(v) + np.arange(split_edge.sum())
@@ -186,3 +167,27 @@ def split_boundary_edges(vertices_m: FloatArray, faces: Faces, target_edge_m: fl
         keep[cut] = False
         f = np.vstack([f[keep], np.column_stack([apex, a, mid]),
                        np.column_stack([apex, mid, b])]).astype(np.int32)
+
+
+def _edges_to_bisect(edges: NDArray[np.int64], opposite: NDArray[np.int64],
+                     too_long: NDArray[np.bool_], longest: NDArray[np.int64],
+                     ok_face: NDArray[np.bool_]) -> NDArray[np.bool_]:
+    """(E,) the edges one round of `split_boundary_edges` bisects: the longest edges of the
+    faces that hold a too-long edge ending on the boundary, and, along the chain, the longest
+    of each face beside an edge so chosen, where the edge is the longest of every face using
+    it. Each face then loses one edge at most, so the round's splits are independent; the
+    longest chosen edge always qualifies, so the rounds end (none: only where a face with a
+    repeated corner blocks the chain)."""
+    uses = faces_per_edge(opposite, len(edges))
+    on_boundary = np.zeros(int(edges.max(initial=0)) + 1, dtype=bool)
+    on_boundary[edges[uses == 1].ravel()] = True
+    wanted = too_long & on_boundary[edges].any(axis=1)
+    needed = np.zeros(len(edges), dtype=bool)
+    needed[longest[ok_face & wanted[opposite].any(axis=1)]] = True
+    while True:
+        grown = needed.copy()
+        grown[longest[ok_face & needed[opposite].any(axis=1)]] = True
+        if (grown == needed).all():
+            break
+        needed = grown
+    return needed & (np.bincount(longest[ok_face], minlength=len(edges)) == uses)
