@@ -145,16 +145,18 @@ def split_boundary_edges(vertices_m: FloatArray, faces: Faces, target_edge_m: fl
     v, f = np.asarray(vertices_m, np.float64), np.asarray(faces, np.int32)
     while True:
         edges, opposite = edge_table(f)
+        uses = faces_per_edge(opposite, len(edges))
+        on_boundary = np.zeros(len(v), dtype=bool)
+        on_boundary[edges[uses == 1].ravel()] = True
         length_m = np.linalg.norm(v[edges[:, 0]] - v[edges[:, 1]], axis=1)
+        wanted = (length_m > target_edge_m * 4 / 3) & on_boundary[edges].any(axis=1)
+        if not wanted.any():
+            return v, f
         ok_face = ~(f[:, [0, 1, 2]] == f[:, [1, 2, 0]]).any(axis=1)
-        # Each face's longest edge, ties to the lower index.
-        rank = np.empty(len(edges), dtype=np.int64)
-        rank[np.lexsort((np.arange(len(edges)), -length_m))] = np.arange(len(edges))
-        corner = np.argmin(rank[opposite], axis=1)
+        corner = _longest_corner(length_m, opposite)
         longest = opposite[np.arange(len(f)), corner]
-        split_edge = _edges_to_bisect(edges, opposite, length_m > target_edge_m * 4 / 3,
-                                      longest, ok_face)
-        if not split_edge.any():
+        split_edge = _edges_to_bisect(opposite, uses, wanted, longest, ok_face)
+        if not split_edge.any():  # only where a face with a repeated corner blocks the chain
             return v, f
         new_index = np.full(len(edges), -1, dtype=np.int64)
         new_index[split_edge] = len(v) + np.arange(split_edge.sum())
@@ -169,20 +171,30 @@ def split_boundary_edges(vertices_m: FloatArray, faces: Faces, target_edge_m: fl
                        np.column_stack([apex, mid, b])]).astype(np.int32)
 
 
-def _edges_to_bisect(edges: NDArray[np.int64], opposite: NDArray[np.int64],
-                     too_long: NDArray[np.bool_], longest: NDArray[np.int64],
+def _longest_corner(length_m: FloatArray, opposite: NDArray[np.int64]) -> NDArray[np.int64]:
+    """(F,) the corner opposite each face's longest edge, equal lengths going to the lower
+    edge index: one order over all edges, so that the longest edge of a chain is the longest
+    of every face it is in."""
+    face_length = length_m[opposite]
+    best = np.zeros(len(opposite), dtype=np.int64)
+    rows = np.arange(len(opposite))
+    for c in (1, 2):
+        here, there = face_length[:, c], face_length[rows, best]
+        better = (here > there) | ((here == there) & (opposite[:, c] < opposite[rows, best]))
+        best[better] = c
+    return best
+
+
+def _edges_to_bisect(opposite: NDArray[np.int64], uses: NDArray[np.int64],
+                     wanted: NDArray[np.bool_], longest: NDArray[np.int64],
                      ok_face: NDArray[np.bool_]) -> NDArray[np.bool_]:
     """(E,) the edges one round of `split_boundary_edges` bisects: the longest edges of the
-    faces that hold a too-long edge ending on the boundary, and, along the chain, the longest
-    of each face beside an edge so chosen, where the edge is the longest of every face using
-    it. Each face then loses one edge at most, so the round's splits are independent; the
-    longest chosen edge always qualifies, so the rounds end (none: only where a face with a
-    repeated corner blocks the chain)."""
-    uses = faces_per_edge(opposite, len(edges))
-    on_boundary = np.zeros(int(edges.max(initial=0)) + 1, dtype=bool)
-    on_boundary[edges[uses == 1].ravel()] = True
-    wanted = too_long & on_boundary[edges].any(axis=1)
-    needed = np.zeros(len(edges), dtype=bool)
+    faces that hold a `wanted` edge, and, along the chain, the longest of each face beside an
+    edge so chosen, where the edge is the longest of every face using it. Each face then
+    loses one edge at most, so the round's splits are independent; the longest chosen edge
+    always qualifies, so the rounds end (none: only where a face with a repeated corner
+    blocks the chain)."""
+    needed = np.zeros(len(uses), dtype=bool)
     needed[longest[ok_face & wanted[opposite].any(axis=1)]] = True
     while True:
         grown = needed.copy()
@@ -190,4 +202,4 @@ def _edges_to_bisect(edges: NDArray[np.int64], opposite: NDArray[np.int64],
         if (grown == needed).all():
             break
         needed = grown
-    return needed & (np.bincount(longest[ok_face], minlength=len(edges)) == uses)
+    return needed & (np.bincount(longest[ok_face], minlength=len(uses)) == uses)
