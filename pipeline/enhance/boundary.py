@@ -18,9 +18,10 @@ retraction holds all of it (reverse 0.963) but keeps the boundary's noise in the
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse as sp
 from numpy.typing import NDArray
 
-from pipeline.enhance.baselines import mean_operator, twice_field
+from pipeline.enhance.baselines import twice_field
 from pipeline.mesh import TriangleMesh, vertex_normals
 from pipeline.mesh_repair import edge_table, faces_per_edge
 
@@ -34,11 +35,11 @@ def boundary_half_edges(faces: NDArray[np.int32]) -> NDArray[np.int64]:
     return half_edges[on_boundary].astype(np.int64)
 
 
-def across_boundary(vertices_m: NDArray[np.float64], faces: NDArray[np.int32]
-                    ) -> NDArray[np.float64]:
+def across_boundary(vertices_m: NDArray[np.float64], faces: NDArray[np.int32],
+                    half: NDArray[np.int64]) -> NDArray[np.float64]:
     """(V, 3) at each boundary vertex the unit direction in the surface across the boundary
-    (normal x boundary tangent; its sign does not matter to its users); zero elsewhere."""
-    half = boundary_half_edges(faces)
+    (normal x boundary tangent; its sign does not matter to its users); zero elsewhere.
+    `half` are the faces' `boundary_half_edges`."""
     tangent = np.zeros_like(vertices_m)
     along = vertices_m[half[:, 1]] - vertices_m[half[:, 0]]
     for end in (0, 1):
@@ -48,16 +49,19 @@ def across_boundary(vertices_m: NDArray[np.float64], faces: NDArray[np.int32]
     return np.divide(across, length, out=np.zeros_like(across), where=length > 0)
 
 
-def boundary_offset(mesh: TriangleMesh, pilot_iterations: int
+def boundary_offset(mesh: TriangleMesh, mean_op: sp.csr_matrix, pilot_iterations: int
                     ) -> NDArray[np.float64] | None:
     """(V, 3) the umbrella offset (mean of neighbours minus the vertex) across the boundary,
     measured on the mesh after `pilot_iterations` Laplacian steps (the noise would swamp it
     on the mesh itself), zero away from the boundary; None for a closed mesh, or where
-    `pilot_iterations` is 0 (the boundary is smoothed like the rest)."""
-    if pilot_iterations == 0 or len(boundary_half_edges(mesh.faces)) == 0:
+    `pilot_iterations` is 0 (the boundary is smoothed like the rest). `mean_op` is the mesh's
+    `baselines.mean_operator`."""
+    if pilot_iterations == 0:
         return None
-    m = mean_operator(mesh.faces, mesh.vertex_count)
-    pilot = twice_field(m, mesh.vertices_m, pilot_iterations, 1, 0.5)
-    across = across_boundary(pilot, mesh.faces)
-    offset = np.sum((m @ pilot - pilot) * across, axis=1, keepdims=True)
+    half = boundary_half_edges(mesh.faces)
+    if len(half) == 0:
+        return None
+    pilot = twice_field(mean_op, mesh.vertices_m, pilot_iterations, 1, 0.5)
+    across = across_boundary(pilot, mesh.faces, half)
+    offset = np.sum((mean_op @ pilot - pilot) * across, axis=1, keepdims=True)
     return offset * across

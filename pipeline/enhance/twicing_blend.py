@@ -146,7 +146,7 @@ def twicing_candidates(
     the pilot. Each is given at every neighbourhood size in `feature_rings`.
     """
     m = mean_operator(mesh.faces, mesh.vertex_count)
-    offset_m = boundary_offset(mesh, config.boundary_pilot_iterations)
+    offset_m = boundary_offset(mesh, m, config.boundary_pilot_iterations)
     ops = field_ops(m, device, offset_m)
     x = mesh.vertices_m
     # A fixed probe: the result depends on the mesh alone.

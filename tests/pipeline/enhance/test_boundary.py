@@ -3,6 +3,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from pipeline.enhance.baselines import mean_operator
 from pipeline.enhance.boundary import across_boundary, boundary_half_edges, boundary_offset
 from pipeline.enhance.data import noisy_along_normals
 from pipeline.enhance.twicing_blend import TwicingBlendConfig, twicing_candidates
@@ -32,11 +33,15 @@ def open_sphere() -> TriangleMesh:
     return TriangleMesh(s.vertices_m, s.faces[keep])
 
 
+def _offset(mesh: TriangleMesh):
+    return boundary_offset(mesh, mean_operator(mesh.faces, mesh.vertex_count), 10)
+
+
 def test_a_closed_mesh_has_no_boundary_and_no_offset():
     s = sphere(0.5, 8)
     assert len(boundary_half_edges(s.faces)) == 0
-    assert boundary_offset(s, 10) is None
-    assert boundary_offset(grid(5), 0) is None
+    assert boundary_offset(s, mean_operator(s.faces, s.vertex_count), 10) is None
+    assert boundary_offset(grid(5), mean_operator(grid(5).faces, 25), 0) is None
 
 
 def test_boundary_half_edges_follow_the_winding_round_a_square():
@@ -51,7 +56,7 @@ def test_boundary_half_edges_follow_the_winding_round_a_square():
 def test_across_is_in_the_surface_and_across_the_boundary():
     n = 7
     mesh = grid(n)
-    across = across_boundary(mesh.vertices_m, mesh.faces)
+    across = across_boundary(mesh.vertices_m, mesh.faces, boundary_half_edges(mesh.faces))
     x, y = mesh.vertices_m[:, 0] / 0.01, mesh.vertices_m[:, 1] / 0.01
     inner = (x > 0.5) & (x < n - 1.5) & (y > 0.5) & (y < n - 1.5)
     assert np.allclose(across[inner], 0.0)
@@ -96,7 +101,7 @@ def test_a_held_open_sphere_keeps_more_of_its_cap():
 
 def test_torch_steps_give_the_scipy_candidates_on_an_open_mesh():
     mesh = noisy_along_normals(open_sphere(), 0.01, np.random.default_rng(0))
-    assert boundary_offset(mesh, 10) is not None
+    assert _offset(mesh) is not None
     host, torch_cpu = twicing_candidates(mesh, HOLD), twicing_candidates(mesh, HOLD, "cpu")
     assert np.allclose(torch_cpu.vertices_m, host.vertices_m, rtol=0, atol=1e-12)
     assert np.allclose(torch_cpu.features, host.features, rtol=1e-5, atol=1e-5)
@@ -108,6 +113,6 @@ def test_the_offset_follows_pose_and_scale():
     c, s = np.cos(0.7), np.sin(0.7)
     r = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     moved = mesh.with_vertices(3.0 * mesh.vertices_m @ r.T + 1.0)
-    a, b = boundary_offset(mesh, 10), boundary_offset(moved, 10)
+    a, b = _offset(mesh), _offset(moved)
     assert a is not None and b is not None
     assert np.allclose(3.0 * a @ r.T, b, atol=1e-12)
