@@ -119,7 +119,29 @@ def _selector_lines(report: dict) -> list[str]:
     for name, f in r["validation"].items():
         lines.append(f"  | {name} | {f['noisy']:.3f} | {f['best_count']:.3f} | "
                      f"{f['adaptive_twicing']:.3f} | {f['selector']:.3f} |")
-    return lines + [""]
+    return lines + [""] + _ensemble_lines(report)
+
+
+def _ensemble_lines(report: dict) -> list[str]:
+    """The card's lines on the shipped selector ensemble, where the selector is one."""
+    if "selector_ensemble" not in report:
+        return []
+    e = report["selector_ensemble"]
+    members = "; ".join(m.get("command", m.get("source", "")) for m in e["members"])
+    c2m = e["protocol_c2m_rms_mm"]
+    rows = [f"  | {mesh} | " + " | ".join("–" if v is None else f"{v:.4f}" for v in values) + " |"
+            for mesh, values in c2m["selector_alone"].items()]
+    return [
+        f"  The shipped selector is an ensemble of {len(e['members'])} such runs (the mean of "
+        f"their blend weights), made by `{e['command']}`; members: {members}. {e['note']}.",
+        "",
+        f"  Selector alone, C2M RMS mm, {c2m['benchmark']}:",
+        "",
+        "  | mesh | " + " | ".join(f"seed {m['seed']}" for m in e["members"]) + " | ensemble |",
+        "  | --- |" + " --- |" * (len(e["members"]) + 1),
+        *rows,
+        "",
+    ]
 
 
 def _gain_lines(report: dict) -> list[str]:

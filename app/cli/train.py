@@ -168,3 +168,21 @@ def wanted_stages(stages: str, init: Path | None) -> list[str]:
             raise ValueError("--init: leave out the vae and ldm stages (finetune starts from "
                              "the folder's)")
     return wanted
+
+
+@app.command("selector-ensemble")
+def selector_ensemble(
+    out: Annotated[Path, typer.Option("--out", help="The ensemble's .safetensors file.")],
+    members: Annotated[list[Path], typer.Argument(
+        help="selector.safetensors files of `volumesh train --stages selector` runs with "
+        "different seeds.")],
+) -> None:
+    """Write the ensemble of trained selectors: the mean of their blend weights."""
+    from pipeline.enhance.inference import selector_ensemble_to_bytes
+
+    if len(members) < 2:
+        raise ValueError("selector-ensemble: give two or more selector files")
+    for path in members:
+        if not path.is_file():
+            raise ValueError(f"selector-ensemble: {path} is not a file")
+    out.write_bytes(selector_ensemble_to_bytes([p.read_bytes() for p in members]))

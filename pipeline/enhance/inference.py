@@ -123,12 +123,33 @@ def _prefixed(state: dict, prefix: str) -> dict:
 
 
 def load_selector(data: bytes):
-    from pipeline.enhance.models.twicing_selector import SelectorConfig, TwicingSelector
+    """A `TwicingSelector`, or a `SelectorEnsemble` where the metadata lists its members
+    (`selector_ensemble_to_bytes`)."""
+    from pipeline.enhance.models.twicing_selector import (
+        SelectorConfig,
+        SelectorEnsemble,
+        TwicingSelector,
+    )
 
     state, cfg = weights_from_bytes(data)
-    model = TwicingSelector(SelectorConfig(**_tuples(cfg)))
+    members = [TwicingSelector(SelectorConfig(**_tuples(c))) for c in cfg.get("members", [cfg])]
+    model = members[0] if "members" not in cfg else SelectorEnsemble(members)
     model.load_state_dict(state)
     return model.eval()
+
+
+def selector_ensemble_to_bytes(selectors: list[bytes], half: bool = False) -> bytes:
+    """safetensors bytes of the `SelectorEnsemble` of selectors' safetensors bytes, each
+    member's config in the metadata."""
+    from dataclasses import asdict
+
+    from pipeline.enhance.models.twicing_selector import SelectorEnsemble
+
+    members = [load_selector(data) for data in selectors]
+    if any(isinstance(m, SelectorEnsemble) for m in members):
+        raise ValueError("selector ensemble: a member is itself an ensemble")
+    meta = {"members": [asdict(m.config) for m in members]}
+    return weights_to_bytes(SelectorEnsemble(members).state_dict(), meta, half)
 
 
 def load_vertex_gain(data: bytes):

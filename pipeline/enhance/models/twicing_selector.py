@@ -3,9 +3,11 @@ candidate twicings."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
+from torch import nn
 
 from pipeline.enhance.models.common import RowMLP
 from pipeline.enhance.twicing_blend import TwicingBlendConfig
@@ -40,3 +42,18 @@ class TwicingSelector(RowMLP):
 
     def forward(self, features: torch.Tensor) -> torch.Tensor:
         return torch.softmax(self.logits(features), dim=1)
+
+
+class SelectorEnsemble(nn.Module):
+    """Selectors trained alike from different seeds on the same candidates and features:
+    (V, F) features -> the mean of their (V, K) weights, convex as each member's is."""
+
+    def __init__(self, members: Sequence[TwicingSelector]) -> None:
+        super().__init__()
+        if len({m.config.blend for m in members}) != 1:
+            raise ValueError("selector ensemble: its members weigh different candidates")
+        self.members = nn.ModuleList(members)
+        self.config = members[0].config
+
+    def forward(self, features: torch.Tensor) -> torch.Tensor:
+        return torch.stack([m(features) for m in self.members]).mean(dim=0)

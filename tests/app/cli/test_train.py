@@ -189,3 +189,40 @@ def test_train_gain_stage_writes_a_gain_per_network_and_its_card(tmp_path):
     shipped_gain = replace(config, weights=None)
     assert not np.allclose(enhance_mesh(mesh, config).vertices_m,
                            enhance_mesh(mesh, shipped_gain).vertices_m)
+
+
+def test_selector_ensemble_writes_the_members_mean_and_names_a_missing_file(tmp_path):
+    """`volumesh selector-ensemble` writes a selector whose weights are its members' mean;
+    a member that is not there is one line and exit 2, and nothing is written."""
+    import subprocess
+    import sys
+    from dataclasses import asdict
+
+    import torch
+
+    from pipeline.enhance.inference import load_selector, weights_to_bytes
+    from pipeline.enhance.models.twicing_selector import SelectorConfig, TwicingSelector
+
+    config = SelectorConfig(iterations=(2, 5), pilot_iterations=3, feature_rings=(0,), hidden=4)
+    paths = []
+    for seed in (1, 2):
+        torch.manual_seed(seed)
+        paths.append(tmp_path / f"s{seed}.safetensors")
+        paths[-1].write_bytes(weights_to_bytes(TwicingSelector(config).state_dict(),
+                                               asdict(config)))
+
+    def cli(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-c", "from app.cli import main; main()", *args],
+                              capture_output=True, text=True, timeout=120)
+
+    out = tmp_path / "ensemble.safetensors"
+    assert cli("selector-ensemble", "--out", str(out), *map(str, paths)).returncode == 0
+    x = torch.randn(20, config.blend.feature_count)
+    with torch.no_grad():
+        mean = torch.stack([load_selector(p.read_bytes())(x) for p in paths]).mean(dim=0)
+        assert torch.allclose(load_selector(out.read_bytes())(x), mean, atol=1e-6)
+    missing = cli("selector-ensemble", "--out", str(tmp_path / "x.safetensors"),
+                  str(paths[0]), str(tmp_path / "nope.safetensors"))
+    assert missing.returncode == 2
+    assert missing.stderr.strip().splitlines()[-1].endswith("nope.safetensors is not a file")
+    assert not (tmp_path / "x.safetensors").exists()
