@@ -137,7 +137,8 @@ def _ensemble_lines(report: dict) -> list[str]:
         "",
         f"  Selector alone, C2M RMS mm, {c2m['benchmark']}:",
         "",
-        "  | mesh | " + " | ".join(f"seed {m['seed']}" for m in e["members"]) + " | ensemble |",
+        "  | mesh | " + " | ".join(f"seed {m.get('seed', '?')}" for m in e["members"])
+        + " | ensemble |",
         "  | --- |" + " --- |" * (len(e["members"]) + 1),
         *rows,
         "",

@@ -99,6 +99,8 @@ def train(
     report["data"] = {"train": [n for n, _ in train_set], "validation": [n for n, _ in val_set]}
     if "selector" in wanted and not (resume and (out / "selector.safetensors").exists()):
         report["selector"] = selector_stage(out, train_set, val_set, cfg.selector, seed)
+        # A new selector replaces any ensemble the report described.
+        report.pop("selector_ensemble", None)
         report_path.write_text(json.dumps(report, indent=1))
     network_stages = [s for s in wanted if s in NETWORK_STAGES]
     if network_stages:
@@ -178,11 +180,18 @@ def selector_ensemble(
         "different seeds.")],
 ) -> None:
     """Write the ensemble of trained selectors: the mean of their blend weights."""
-    from pipeline.enhance.inference import selector_ensemble_to_bytes
+    from pipeline.enhance.inference import load_selector, selector_ensemble_to_bytes
 
-    if len(members) < 2:
-        raise ValueError("selector-ensemble: give two or more selector files")
+    if len(set(members)) < 2 or len(set(members)) < len(members):
+        raise ValueError("selector-ensemble: give two or more different selector files")
+    if not out.parent.is_dir():
+        raise ValueError(f"selector-ensemble: --out: {out.parent} is not a directory")
     for path in members:
         if not path.is_file():
             raise ValueError(f"selector-ensemble: {path} is not a file")
+        try:
+            load_selector(path.read_bytes())
+        except Exception as exc:  # whatever a foreign file makes safetensors or torch raise
+            raise ValueError(f"selector-ensemble: {path} is not a selector file ({exc})"
+                             ) from None
     out.write_bytes(selector_ensemble_to_bytes([p.read_bytes() for p in members]))

@@ -3,15 +3,16 @@
 A boundary vertex's neighbours all lie on one side of it, so each smoothing step pulls it
 inwards along the surface by a fraction of an edge, and long smoothing lets an open boundary
 retract: under issue 4's protocol the selector's twicings (up to 240 steps) left beetle's truth
-boundary 7 mm from the result (reverse RMS 1.55 mm, 55 % of its square from the truth's
-boundary vertices, which are 2.7 % of them). That
+boundary 7 mm from the selector's result (its reverse RMS 1.554 mm, 55 % of its square from
+the truth's boundary vertices, which are 2.7 % of them). That
 one-sided offset is the shape of the mesh there, not noise, so it is measured once, on a pilot,
 and left out of every step (`twicing_blend.field_ops`); the vertex still follows its noise
 along the surface, along the boundary and along the normal.
 
 The pilot has itself retracted a little, so the offset comes out short and about a quarter of
 the retraction is held back on a regular grid (tests); beetle's reverse RMS under the protocol
-went from 1.593 to 1.258 mm, its C2M RMS from 0.8766 to 0.8808. A pilot held against
+(the LDM's result, the selector shipped before the ensemble) went from 1.593 to 1.258 mm, its
+C2M RMS from 0.8766 to 0.8808. A pilot held against
 retraction holds all of it (reverse 0.963) but keeps the boundary's noise in the surface
 (C2M 0.9365; the teapot 0.6297 -> 0.6476), so it is not used.
 """

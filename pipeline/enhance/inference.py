@@ -132,6 +132,7 @@ def load_selector(data: bytes):
     )
 
     state, cfg = weights_from_bytes(data)
+    cfg.pop("member_sha256", None)
     members = [TwicingSelector(SelectorConfig(**_tuples(c))) for c in cfg.get("members", [cfg])]
     model = members[0] if "members" not in cfg else SelectorEnsemble(members)
     model.load_state_dict(state)
@@ -140,15 +141,17 @@ def load_selector(data: bytes):
 
 def selector_ensemble_to_bytes(selectors: list[bytes], half: bool = False) -> bytes:
     """safetensors bytes of the `SelectorEnsemble` of selectors' safetensors bytes, each
-    member's config in the metadata."""
+    member's config and the SHA-256 of its bytes in the metadata."""
+    import hashlib
     from dataclasses import asdict
 
     from pipeline.enhance.models.twicing_selector import SelectorEnsemble
 
     members = [load_selector(data) for data in selectors]
     if any(isinstance(m, SelectorEnsemble) for m in members):
-        raise ValueError("selector ensemble: a member is itself an ensemble")
-    meta = {"members": [asdict(m.config) for m in members]}
+        raise ValueError("selector-ensemble: a member is itself an ensemble")
+    meta = {"members": [asdict(m.config) for m in members],
+            "member_sha256": [hashlib.sha256(data).hexdigest() for data in selectors]}
     return weights_to_bytes(SelectorEnsemble(members).state_dict(), meta, half)
 
 

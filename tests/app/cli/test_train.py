@@ -225,4 +225,13 @@ def test_selector_ensemble_writes_the_members_mean_and_names_a_missing_file(tmp_
                   str(paths[0]), str(tmp_path / "nope.safetensors"))
     assert missing.returncode == 2
     assert missing.stderr.strip().splitlines()[-1].endswith("nope.safetensors is not a file")
+    foreign = tmp_path / "foreign.safetensors"
+    foreign.write_bytes(b"not a safetensors file")
+    wrong = cli("selector-ensemble", "--out", str(tmp_path / "x.safetensors"),
+                str(paths[0]), str(foreign))
+    assert wrong.returncode == 2
+    assert "foreign.safetensors is not a selector file" in wrong.stderr.strip().splitlines()[-1]
+    twice = cli("selector-ensemble", "--out", str(tmp_path / "x.safetensors"),
+                str(paths[0]), str(paths[0]))
+    assert twice.returncode == 2 and "two or more different" in twice.stderr
     assert not (tmp_path / "x.safetensors").exists()

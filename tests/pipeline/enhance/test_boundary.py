@@ -46,8 +46,12 @@ def test_a_closed_mesh_has_no_boundary_and_no_offset():
 
 def test_boundary_half_edges_follow_the_winding_round_a_square():
     n = 6
-    half = boundary_half_edges(grid(n).faces)
+    faces = grid(n).faces
+    half = boundary_half_edges(faces)
     assert len(half) == 4 * (n - 1)
+    # Each runs as its one face winds: (a, b) follow each other in that face's corner order.
+    wound = {(int(f[c]), int(f[(c + 1) % 3])) for f in faces for c in range(3)}
+    assert all((int(a), int(b)) in wound for a, b in half)
     # Each boundary vertex starts exactly one half-edge and ends one: a closed loop.
     assert sorted(half[:, 0]) == sorted(half[:, 1])
     assert len(np.unique(half[:, 0])) == 4 * (n - 1)
