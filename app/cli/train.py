@@ -186,12 +186,14 @@ def selector_ensemble(
         raise ValueError("selector-ensemble: give two or more different selector files")
     if not out.parent.is_dir():
         raise ValueError(f"selector-ensemble: --out: {out.parent} is not a directory")
+    data = []
     for path in members:
         if not path.is_file():
             raise ValueError(f"selector-ensemble: {path} is not a file")
+        data.append(path.read_bytes())
         try:
-            load_selector(path.read_bytes())
+            load_selector(data[-1])
         except Exception as exc:  # whatever a foreign file makes safetensors or torch raise
             raise ValueError(f"selector-ensemble: {path} is not a selector file ({exc})"
                              ) from None
-    out.write_bytes(selector_ensemble_to_bytes([p.read_bytes() for p in members]))
+    out.write_bytes(selector_ensemble_to_bytes(data))

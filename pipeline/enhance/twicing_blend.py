@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import warnings
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from math import comb
 from typing import Any
 
@@ -87,12 +87,8 @@ def field_ops(mean_op: sp.csr_matrix, device: str | None,
     (V, 3) is the c that steps leave out (`boundary.boundary_offset`); None: zero."""
     mean32 = mean_op.astype(np.float32)
     if device is None:
-        if offset_m is None:
-            return FieldOps(lambda y: y + 0.5 * (mean_op @ y - y), lambda y: mean32 @ y,
-                            _same, _same)
-        host_offsets = _HalfOffsets(offset_m, _same)
-        return FieldOps(lambda y: y + 0.5 * (mean_op @ y - y) - host_offsets(y.shape[1]),
-                        lambda y: mean32 @ y, _same, _same)
+        step = _leaving_out(lambda y: y + 0.5 * (mean_op @ y - y), offset_m, _same)
+        return FieldOps(step, lambda y: mean32 @ y, _same, _same)
     import torch
 
     def to_torch(x: NDArray) -> Any:
@@ -109,29 +105,27 @@ def field_ops(mean_op: sp.csr_matrix, device: str | None,
 
     half_step = sparse((0.5 * sp.identity(mean_op.shape[0]) + 0.5 * mean_op).tocsr())
     average = sparse(mean32)
+    step = _leaving_out(lambda y: half_step @ y, offset_m, to_torch)
+    return FieldOps(step, lambda y: average @ y, to_torch, lambda t: t.cpu().numpy())
+
+
+def _leaving_out(step: Callable[[Any], Any], offset_m: NDArray[np.float64] | None,
+                 to_field: Callable[[NDArray], Any]) -> Callable[[Any], Any]:
+    """`step` followed by subtracting 0.5 c, c laid out in each whole (x, y, z) triple of a
+    field's columns (none in a trailing column), made once per field width; `step` itself
+    where there is no c."""
     if offset_m is None:
-        return FieldOps(lambda y: half_step @ y, lambda y: average @ y, to_torch,
-                        lambda t: t.cpu().numpy())
-    offsets = _HalfOffsets(offset_m, to_torch)
-    return FieldOps(lambda y: half_step @ y - offsets(y.shape[1]), lambda y: average @ y,
-                    to_torch, lambda t: t.cpu().numpy())
+        return step
+    half_offsets: dict[int, Any] = {}
 
+    def half_offset(columns: int) -> Any:
+        if columns not in half_offsets:
+            tiled = np.zeros((len(offset_m), columns))
+            tiled[:, : 3 * (columns // 3)] = np.tile(0.5 * offset_m, columns // 3)
+            half_offsets[columns] = to_field(tiled)
+        return half_offsets[columns]
 
-@dataclass
-class _HalfOffsets:
-    """0.5 c laid out for a field of a given number of columns (c in each whole triple, none
-    in a trailing column), made once per layout."""
-
-    offset_m: NDArray[np.float64]
-    to_field: Callable[[NDArray], Any]
-    made: dict[int, Any] = field(default_factory=dict)
-
-    def __call__(self, columns: int) -> Any:
-        if columns not in self.made:
-            tiled = np.zeros((len(self.offset_m), columns))
-            tiled[:, : 3 * (columns // 3)] = np.tile(0.5 * self.offset_m, columns // 3)
-            self.made[columns] = self.to_field(tiled)
-        return self.made[columns]
+    return lambda y: step(y) - half_offset(y.shape[1])
 
 
 def _same(x: Any) -> Any:
