@@ -180,10 +180,14 @@ def _read_outcome(returncode: int, stdout: bytes, stderr: bytes) -> KernelOutcom
 
 def angle_stats(vertices_m: FloatArray, faces: Faces, config: RemeshConfig) -> dict[str, float]:
     """Smallest and largest angle, and the shares of faces outside the criteria."""
-    if len(faces) == 0:
+    return _angle_figures(triangle_angles_deg(vertices_m, faces), config)
+
+
+def _angle_figures(angles: FloatArray, config: RemeshConfig) -> dict[str, float]:
+    """`angle_stats` from the faces' (F, 3) `triangle_angles_deg`."""
+    if len(angles) == 0:
         return {"min_angle_deg": 0.0, "max_angle_deg": 0.0, "share_below_min": 0.0,
                 "share_above_max": 0.0}
-    angles = triangle_angles_deg(vertices_m, faces)
     return {"min_angle_deg": float(angles.min()), "max_angle_deg": float(angles.max()),
             "share_below_min": float(np.mean(angles.min(axis=1) < config.min_angle_deg)),
             "share_above_max": float(np.mean(angles.max(axis=1) > config.max_angle_deg))}
@@ -223,8 +227,8 @@ def remesh(mesh: TriangleMesh, config: RemeshConfig) -> tuple[TriangleMesh, dict
     if result is not None and limit is not None:
         given = (input_cleaned[1]["angles_before_cleanup"] if input_cleaned is not None
                  else angle_stats(vertices, faces, config))
-        made = angle_stats(*result, config)
-        stats["kernel_kept"] = _outside(made) - _outside(given) <= limit
+        made = triangle_angles_deg(*result)
+        stats["kernel_kept"] = _outside(_angle_figures(made, config)) - _outside(given) <= limit
         if stats["kernel_kept"]:
             return _cleaned_up(*result, config, stats, made)
         result = None
@@ -237,14 +241,16 @@ def remesh(mesh: TriangleMesh, config: RemeshConfig) -> tuple[TriangleMesh, dict
 
 
 def _cleaned_up(vertices_m: FloatArray, faces: Faces, config: RemeshConfig,
-                stats: dict[str, Any], before: dict[str, float] | None = None
+                stats: dict[str, Any], angles: FloatArray | None = None
                 ) -> tuple[TriangleMesh, dict[str, Any]]:
-    """The angle clean-up of a mesh, and `stats` with its angle figures added (`before`: the
-    mesh's `angle_stats`, where they are already known)."""
-    stats["angles_before_cleanup"] = before or angle_stats(vertices_m, faces, config)
-    vertices_m, faces, stats["angle_cleanup"] = enforce_angles(
-        vertices_m, faces, config.min_angle_deg, config.max_angle_deg, config.cleanup_passes)
-    stats["angles"] = angle_stats(vertices_m, faces, config)
+    """The angle clean-up of a mesh, and `stats` with its angle figures added (`angles`: the
+    faces' `triangle_angles_deg`, where they are already known)."""
+    angles = triangle_angles_deg(vertices_m, faces) if angles is None else angles
+    stats["angles_before_cleanup"] = _angle_figures(angles, config)
+    vertices_m, faces, angles, stats["angle_cleanup"] = enforce_angles(
+        vertices_m, faces, angles, config.min_angle_deg, config.max_angle_deg,
+        config.cleanup_passes)
+    stats["angles"] = _angle_figures(angles, config)
     return TriangleMesh(vertices_m=vertices_m, faces=faces), stats
 
 

@@ -1,6 +1,8 @@
 from __future__ import annotations
 
 import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from pipeline.angle_cleanup import (
     collapse_needles,
@@ -28,8 +30,9 @@ def test_a_cap_gets_its_long_edge_flipped() -> None:
     # Two triangles sharing a long edge, both with a ~150 degree angle.
     v = np.array([[0, 0, 0], [2, 0, 0], [1, 0.15, 0], [1, -0.15, 0]], dtype=float)
     f = np.array([[0, 1, 2], [1, 0, 3]], dtype=np.int32)
-    out, flips = flip_caps(v, f, 120.0)
+    out, angles, flips = flip_caps(v, f, triangle_angles_deg(v, f), 120.0)
     assert flips == 1
+    assert np.array_equal(angles, triangle_angles_deg(v, out))
     assert triangle_angles_deg(v, out).max() < triangle_angles_deg(v, f).max()
     edges, _ = edge_table(out)
     assert [2, 3] in edges.tolist()
@@ -43,8 +46,9 @@ def test_a_needle_gets_its_short_edge_collapsed() -> None:
     centre = 3 * 7 + 3
     v[centre + 1] = v[centre] + [0.05, 0.0, 0.0]  # squeeze the edge right of the centre
     assert triangle_angles_deg(v, f).min() < 5
-    out_v, out_f, collapses = collapse_needles(v, f, 20.0)
+    out_v, out_f, angles, collapses = collapse_needles(v, f, triangle_angles_deg(v, f), 20.0)
     assert collapses >= 1
+    assert np.array_equal(angles, triangle_angles_deg(out_v, out_f))
     assert triangle_angles_deg(out_v, out_f).min() > triangle_angles_deg(v, f).min()
     # Still a manifold disc: interior edges have two faces, boundary edges one.
     _, opposite = edge_table(out_f)
@@ -53,7 +57,7 @@ def test_a_needle_gets_its_short_edge_collapsed() -> None:
 
 def test_enforce_angles_leaves_good_meshes_alone() -> None:
     v, f = _grid()
-    out_v, out_f, stats = enforce_angles(v, f, 20.0, 120.0)
+    out_v, out_f, _, stats = enforce_angles(v, f, triangle_angles_deg(v, f), 20.0, 120.0)
     assert stats == {"flips": 0, "collapses": 0, "boundary_drops": 0}
     assert len(out_f) == len(f) and np.allclose(out_v, v)
 
@@ -63,9 +67,23 @@ def test_boundary_slivers_are_dropped_or_fixed() -> None:
     # A flat sliver glued under the grid's bottom edge (1, 2): an ear on the boundary.
     v = np.vstack([v, [[1.5, -0.02, 0.0]]])
     f = np.vstack([f, [[2, 1, 16]]]).astype(np.int32)
-    kept, drops = drop_boundary_slivers(v, f, 20.0, 120.0)
+    kept, kept_angles, drops = drop_boundary_slivers(v, f, triangle_angles_deg(v, f), 20.0, 120.0)
     assert drops == 1 and len(kept) == len(f) - 1 and [2, 1, 16] not in kept.tolist()
-    out_v, out_f, stats = enforce_angles(v, f, 20.0, 120.0)
+    assert np.array_equal(kept_angles, triangle_angles_deg(v, kept))
+    out_v, out_f, _, stats = enforce_angles(v, f, triangle_angles_deg(v, f), 20.0, 120.0)
     assert sum(stats.values()) >= 1
     angles = triangle_angles_deg(out_v, out_f)
     assert angles.min() >= 20.0 - 1e-9 and angles.max() <= 120.0 + 1e-9
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), jitter=st.floats(0.1, 0.45), n=st.integers(4, 12))
+def test_the_angles_handed_on_are_the_cleaned_meshs_own(seed: int, jitter: float, n: int) -> None:
+    # A grid jittered in the plane and out of it: caps, needles and boundary slivers alike.
+    v, f = _grid(n)
+    rng = np.random.default_rng(seed)
+    v = v + rng.uniform(-jitter, jitter, v.shape) * [1.0, 1.0, 0.3]
+    out_v, out_f, angles, stats = enforce_angles(v, f, triangle_angles_deg(v, f), 20.0, 120.0)
+    # Bit for bit: the clean-up decides on these angles, so they must be the mesh's own.
+    assert np.array_equal(angles, triangle_angles_deg(out_v, out_f))
+    assert len(out_f) <= len(f)
