@@ -35,6 +35,7 @@ from pipeline.enhance import EnhanceConfig, enhance_mesh  # noqa: E402
 from pipeline.enhance.config import STAGE_PROGRESS  # noqa: E402
 from pipeline.enhance.data import DataConfig, noisy_along_normals  # noqa: E402
 from pipeline.enhance.metrics import c2m_summary, normal_error_deg  # noqa: E402
+from pipeline.enhance.normal_filter import NormalFilterConfig  # noqa: E402
 from pipeline.mesh import TriangleMesh  # noqa: E402
 
 SWEEPS = {
@@ -52,6 +53,9 @@ VERTEX_NOISE_ONLY = DataConfig(
 sensor noise, holes, resampling or colour), for depth-level figures on held-apart meshes."""
 ISSUE_CLASSICAL = ("taubin", "laplacian", "bilateral")
 """The classical methods issue 4's RMS target is set against; twicing is reported beside them."""
+
+
+NO_NORMAL_FILTER = NormalFilterConfig(normal_iterations=0)
 
 
 def bunny_protocol(meshes: Path, seed: int, edge_m: float = 0.005, name: str = "stanford-bunny",
@@ -325,6 +329,11 @@ def main() -> None:
         # Without the light remesh, which is most of the time on a CPU and all of it on a GPU.
         ("ldm_4_steps_no_remesh", replace(base, method="ldm", steps=4, remesh_iterations=0)),
         ("regressor_no_remesh", replace(base, method="regressor", remesh_iterations=0)),
+        # Without the bilateral normal filter that ends the update: what it adds.
+        ("ldm_4_steps_no_normal_filter", replace(base, method="ldm", steps=4,
+                                                 normal_filter=NO_NORMAL_FILTER)),
+        ("regressor_no_normal_filter", replace(base, method="regressor",
+                                               normal_filter=NO_NORMAL_FILTER)),
     ):
         try:
             run_method(noisy, truth, replace(cfg, resolution=32))  # warm-up (imports, loading)

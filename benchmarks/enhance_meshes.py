@@ -27,6 +27,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from enhance import (  # noqa: E402
+    NO_NORMAL_FILTER,
     SWEEPS,
     _weights,
     best_of_sweep,
@@ -62,6 +63,8 @@ def mesh_report(meshes: Path, name: str, weights: dict | None) -> dict:
         ("regressor", replace(base, method="regressor")),
         ("ldm_4_steps", replace(base, method="ldm", steps=4)),
         ("ldm_4_steps_no_remesh", replace(base, method="ldm", steps=4, remesh_iterations=0)),
+        ("ldm_4_steps_no_normal_filter", replace(base, method="ldm", steps=4,
+                                                 normal_filter=NO_NORMAL_FILTER)),
     ):
         methods[label] = run_method(noisy, truth, cfg)
     found = targets(methods, {})

@@ -8,6 +8,7 @@ from typing import Annotated
 import typer
 
 from app.cli import app
+from pipeline.enhance.normal_filter import NormalFilterConfig
 
 
 @app.command("enhance-mesh")
@@ -76,6 +77,13 @@ def enhance_mesh_command(
             "length) unchanged; 0 always enhances.",
         ),
     ] = 0.05,
+    normal_filter: Annotated[
+        int,
+        typer.Option(
+            "--normal-filter",
+            help="Rounds of bilateral normal filtering that end the view-based update; 0: off.",
+        ),
+    ] = NormalFilterConfig.normal_iterations,
     seed: Annotated[int, typer.Option("--seed")] = 0,
     ensemble: Annotated[
         int, typer.Option("--ensemble", help="Flipped copies of each view averaged: 1|2|4|8.")
@@ -123,6 +131,7 @@ def enhance_mesh_command(
         correction_gain=EnhanceConfig.correction_gain if gain is None else gain,
         learned_gain=gain is None,
         min_noise_ratio=min_noise_ratio,
+        normal_filter=NormalFilterConfig(normal_iterations=normal_filter),
         device=device,
         weights=loaded,
     )

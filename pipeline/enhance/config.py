@@ -9,6 +9,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from pipeline.enhance.noise_level import noise_to_edge_ratio
+from pipeline.enhance.normal_filter import NormalFilterConfig, normal_filter
 from pipeline.enhance.render import DepthRenders, make_views, render_depth, view_directions
 from pipeline.enhance.update import UpdateConfig, ViewSteps, apply_view_steps, view_steps
 from pipeline.mesh import TriangleMesh, mean_edge_length_m
@@ -90,6 +91,9 @@ class EnhanceConfig:
     the synthetic bunny capture measures 0.01 (enhanced without the gate: 0.70 -> 0.86 mm)."""
     update: UpdateConfig = field(default_factory=UpdateConfig)
     """How vertices follow the enhanced depth."""
+    normal_filter: NormalFilterConfig = field(default_factory=NormalFilterConfig)
+    """The bilateral normal filter that ends the view-based update (`normal_filter.py`;
+    `normal_iterations` 0: off)."""
     remesh_iterations: int = 1
     """Rounds of a light isotropic remesh at the mesh's own mean edge length after the
     view-based update (the update itself already puts back moves that turn a face over),
@@ -182,6 +186,7 @@ def enhance_mesh(
     steps = view_steps(inputs.base, inputs.base_renders, enhanced, inputs.update)
     gain = learned_vertex_gain(mesh, steps, config) if learned else None
     result, _ = apply_view_steps(inputs.base, steps, inputs.update, gain)
+    result = normal_filter(result, config.normal_filter)
     done("update")
     if config.remesh_iterations > 0:
         result = light_remesh(result, config.remesh_iterations)

@@ -109,3 +109,4 @@ def test_a_fixed_gain_replaces_the_learned_gains_and_weights_folders_carry_gains
     assert not differ(learned, run())  # deterministic, so a difference below is the option's
     assert differ(learned, run("--gain", "0.35"))
     assert differ(learned, run("--weights", str(folder)))
+    assert differ(learned, run("--normal-filter", "0"))

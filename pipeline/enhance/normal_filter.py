@@ -1,0 +1,126 @@
+"""Bilateral normal filtering and the vertex fit that follows it (Zheng et al. 2011, "Bilateral
+normal filtering for mesh denoising"), the last step of the view-based update.
+
+Each face normal is averaged with those of the faces that share a vertex with it, weighted by
+their area, by the distance between the centroids and by how alike the normals are; then the
+vertices move, along those normals only, so that the faces fit them. After the view update
+the surface is smooth and what is left of the noise tilts faces against their neighbours:
+the range weight lets a crease keep its two sides apart while that tilt is averaged away.
+It is made for that input: noise of a fraction of an edge on edges short against the radius
+of curvature. On raw noise of an edge or more the range weight shuts out every neighbour
+(a sphere with ±1 cm on 2.5 cm edges keeps 87 % of its error), and on a coarse tessellation
+it bends a clean surface (a 24-segment sphere, 6.5 cm edges on 0.5 m, by 2.5 mm RMS).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from numpy.typing import NDArray
+
+from pipeline.mesh import TriangleMesh, mean_edge_length_m
+
+FloatArray = NDArray[np.float64]
+Faces = NDArray[np.int32]
+
+
+@dataclass(frozen=True)
+class NormalFilterConfig:
+    """How the face normals are filtered and the vertices fitted to them."""
+
+    normal_iterations: int = 5
+    """Rounds of bilateral averaging of the face normals (0: the filter is off)."""
+    vertex_iterations: int = 10
+    """Rounds of moving the vertices to fit the filtered normals."""
+    range_sigma: float = 0.15
+    """Width of the normal-likeness weight, as the distance between unit normals."""
+    spatial_sigma_edges: float = 1.5
+    """Width of the distance weight between face centroids, in mean edge lengths.
+
+    The four were chosen on the seven training meshes under issue 4's protocol (the LDM's
+    update without the light remesh; every combination of 3 or 5 normal rounds, 5, 10 or 20
+    vertex rounds, range 0.15 or 0.2, spatial 1 or 1.5 edges, and on the teapot and cow also
+    8 rounds and range 0.3): the least mean C2M RMS relative to the unfiltered update, 0.981
+    (beetle 0.984, cheburashka 0.966, cow 0.988, homer 0.994, rocker-arm 0.975, suzanne
+    0.978, teapot 0.984). Every combination tried did better than none on every one of them
+    (the worst mean 0.985), so the filter is not tuned to a knife's edge."""
+
+    def __post_init__(self) -> None:
+        if self.normal_iterations < 0 or self.vertex_iterations < 0:
+            raise ValueError("normal_filter: iterations must be >= 0")
+        if not (self.range_sigma > 0 and self.spatial_sigma_edges > 0):
+            raise ValueError("normal_filter: range_sigma and spatial_sigma_edges must be > 0")
+
+
+def face_frames(vertices_m: FloatArray, faces: Faces
+                ) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """(F, 3) unit normals (zero where degenerate), (F,) areas in m² and (F, 3) centroids."""
+    tri = vertices_m[faces]
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    twice_area = np.linalg.norm(cross, axis=1)
+    normals = cross / np.maximum(twice_area, 1e-300)[:, None]
+    return normals, 0.5 * twice_area, tri.mean(axis=1)
+
+
+def face_neighbours(faces: Faces, vertex_count: int) -> tuple[NDArray[np.int64], NDArray]:
+    """(P,) face and (P,) neighbour index of every ordered pair of distinct faces that share
+    a vertex."""
+    face_count = len(faces)
+    incidence = sp.csr_matrix(
+        (np.ones(3 * face_count), (np.repeat(np.arange(face_count), 3), faces.ravel())),
+        shape=(face_count, vertex_count))
+    pairs = (incidence @ incidence.T).tocoo()
+    distinct = pairs.row != pairs.col
+    return pairs.row[distinct].astype(np.int64), pairs.col[distinct].astype(np.int64)
+
+
+def filtered_normals(vertices_m: FloatArray, faces: Faces, config: NormalFilterConfig
+                     ) -> FloatArray:
+    """(F, 3) the faces' unit normals after `config.normal_iterations` rounds of bilateral
+    averaging over the faces that share a vertex (the spatial weight fixed by the input)."""
+    normals, areas, centroids = face_frames(vertices_m, faces)
+    face, other = face_neighbours(faces, len(vertices_m))
+    spatial_sigma_m = config.spatial_sigma_edges * mean_edge_length_m(
+        TriangleMesh(vertices_m=vertices_m, faces=faces))
+    near = areas[other] * np.exp(
+        -np.sum((centroids[face] - centroids[other]) ** 2, axis=1) / (2 * spatial_sigma_m**2))
+    for _ in range(config.normal_iterations):
+        weight = near * np.exp(
+            -np.sum((normals[face] - normals[other]) ** 2, axis=1) / (2 * config.range_sigma**2))
+        summed = normals * areas[:, None]
+        for k in range(3):
+            summed[:, k] += np.bincount(face, weight * normals[other, k], len(faces))
+        normals = summed / np.maximum(np.linalg.norm(summed, axis=1, keepdims=True), 1e-300)
+    return normals
+
+
+def fit_to_normals(vertices_m: FloatArray, faces: Faces, normals: FloatArray,
+                   iterations: int) -> FloatArray:
+    """(V, 3) vertices moved so that the faces lie across `normals` (F, 3): each round moves
+    a vertex by the mean, over its faces, of its offset to the face's centroid along the face's
+    normal (Sun et al. 2007), so vertices move along the normals only."""
+    out = vertices_m.copy()
+    face_count_per_vertex = np.bincount(faces.ravel(), minlength=len(vertices_m))
+    scale = 1.0 / np.maximum(face_count_per_vertex, 1)[:, None]
+    for _ in range(iterations):
+        centroids = out[faces].mean(axis=1)
+        move = np.zeros_like(out)
+        for corner in range(3):
+            vertex = faces[:, corner]
+            along = np.sum(normals * (centroids - out[vertex]), axis=1)[:, None] * normals
+            for k in range(3):
+                move[:, k] += np.bincount(vertex, along[:, k], len(out))
+        out += move * scale
+    return out
+
+
+def normal_filter(mesh: TriangleMesh, config: NormalFilterConfig) -> TriangleMesh:
+    """The mesh with its face normals bilaterally filtered and its vertices fitted to them;
+    the mesh itself where `config.normal_iterations` is 0."""
+    if config.normal_iterations == 0:
+        return mesh
+    normals = filtered_normals(mesh.vertices_m, mesh.faces, config)
+    return mesh.with_vertices(
+        fit_to_normals(mesh.vertices_m, mesh.faces, normals, config.vertex_iterations))
