@@ -12,7 +12,6 @@ from pipeline.mesh import TriangleMesh
 from pipeline.mesh_repair import triangle_angles_deg
 from tests.pipeline.enhance.conftest import radial_rms_m
 
-
 OFF = NormalFilterConfig(normal_iterations=0)
 """The update's own moves, with no normal filter after them."""
 
