@@ -82,16 +82,17 @@ def filtered_normals(vertices_m: FloatArray, faces: Faces, config: NormalFilterC
     averaging over the faces that share a vertex (the spatial weight fixed by the input)."""
     normals, areas, centroids = face_frames(vertices_m, faces)
     face, other = face_neighbours(faces, len(vertices_m))
+    row_starts = np.searchsorted(face, np.arange(len(faces) + 1))  # `face` comes sorted
     spatial_sigma_m = config.spatial_sigma_edges * mean_edge_length_m(
         TriangleMesh(vertices_m=vertices_m, faces=faces))
     near = areas[other] * np.exp(
         -np.sum((centroids[face] - centroids[other]) ** 2, axis=1) / (2 * spatial_sigma_m**2))
     for _ in range(config.normal_iterations):
-        weight = near * np.exp(
-            -np.sum((normals[face] - normals[other]) ** 2, axis=1) / (2 * config.range_sigma**2))
-        summed = normals * areas[:, None]
-        for k in range(3):
-            summed[:, k] += np.bincount(face, weight * normals[other, k], len(faces))
+        # |n_f - n_g|² = 2 - 2 n_f·n_g for unit normals.
+        likeness = np.einsum("ij,ij->i", normals[face], normals[other])
+        weight = near * np.exp((likeness - 1.0) / config.range_sigma**2)
+        averaging = sp.csr_matrix((weight, other, row_starts), shape=(len(faces), len(faces)))
+        summed = normals * areas[:, None] + averaging @ normals
         normals = summed / np.maximum(np.linalg.norm(summed, axis=1, keepdims=True), 1e-300)
     return normals
 
@@ -102,17 +103,17 @@ def fit_to_normals(vertices_m: FloatArray, faces: Faces, normals: FloatArray,
     a vertex by the mean, over its faces, of its offset to the face's centroid along the face's
     normal (Sun et al. 2007), so vertices move along the normals only."""
     out = vertices_m.copy()
-    face_count_per_vertex = np.bincount(faces.ravel(), minlength=len(vertices_m))
-    scale = 1.0 / np.maximum(face_count_per_vertex, 1)[:, None]
+    corners = faces.T.ravel()  # corner-major: every face's first corners, then second, third
+    corner_normals = np.tile(normals, (3, 1))
+    face_count_per_vertex = np.bincount(corners, minlength=len(vertices_m))
+    # (V, 3F): a vertex's mean over the corners it is, one product a round.
+    mean_over_corners = sp.csr_matrix(
+        (1.0 / face_count_per_vertex[corners], (corners, np.arange(len(corners)))),
+        shape=(len(vertices_m), len(corners)))
     for _ in range(iterations):
-        centroids = out[faces].mean(axis=1)
-        move = np.zeros_like(out)
-        for corner in range(3):
-            vertex = faces[:, corner]
-            along = np.sum(normals * (centroids - out[vertex]), axis=1)[:, None] * normals
-            for k in range(3):
-                move[:, k] += np.bincount(vertex, along[:, k], len(out))
-        out += move * scale
+        to_centroid = np.tile(out[faces].mean(axis=1), (3, 1)) - out[corners]
+        along = np.einsum("ij,ij->i", corner_normals, to_centroid)[:, None] * corner_normals
+        out += mean_over_corners @ along
     return out
 
 
