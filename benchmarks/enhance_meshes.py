@@ -30,6 +30,7 @@ from enhance import (  # noqa: E402
     NO_NORMAL_FILTER,
     SWEEPS,
     _weights,
+    best_normal_filtering,
     best_of_sweep,
     bunny_protocol,
     run_method,
@@ -58,6 +59,8 @@ def mesh_report(meshes: Path, name: str, weights: dict | None) -> dict:
         del methods[method]["rms_curve_mm"]
     base = EnhanceConfig(weights=weights)
     methods["adaptive_twicing"] = run_method(noisy, truth, EnhanceConfig(method="adaptive"))
+    methods["bilateral_normal_filtering"] = best_normal_filtering(noisy, truth)
+    del methods["bilateral_normal_filtering"]["rms_by_setting_mm"]
     for label, cfg in (
         ("selector", replace(base, method="selector")),
         ("regressor", replace(base, method="regressor")),
