@@ -64,9 +64,10 @@ def face_frames(vertices_m: FloatArray, faces: Faces
     return normals, 0.5 * twice_area, tri.mean(axis=1)
 
 
-def face_neighbours(faces: Faces, vertex_count: int) -> tuple[NDArray[np.int64], NDArray]:
+def face_neighbours(faces: Faces, vertex_count: int
+                    ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
     """(P,) face and (P,) neighbour index of every ordered pair of distinct faces that share
-    a vertex."""
+    a vertex, sorted by face."""
     face_count = len(faces)
     incidence = sp.csr_matrix(
         (np.ones(3 * face_count), (np.repeat(np.arange(face_count), 3), faces.ravel())),
