@@ -58,15 +58,23 @@ def compact(vertices_m: FloatArray, faces: Faces) -> tuple[FloatArray, Faces]:
     return vertices_m[used], new_index[faces].astype(np.int32)
 
 
-def face_components(faces: Faces, vertex_count: int) -> NDArray[np.int64]:
-    """(F,) connected-component label of each face (faces sharing a vertex are connected)."""
+def faces_sharing_vertices(faces: Faces, vertex_count: int):
+    """(F, F) scipy CSR matrix: entry (f, g) counts the vertices faces f and g share (the
+    diagonal, a face with itself, included)."""
     from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
 
     rows = np.repeat(np.arange(len(faces)), 3)
     incidence = coo_matrix((np.ones(len(rows)), (rows, faces.ravel())),
                            shape=(len(faces), vertex_count)).tocsr()
-    _, labels = connected_components(incidence @ incidence.T, directed=False)
+    return incidence @ incidence.T
+
+
+def face_components(faces: Faces, vertex_count: int) -> NDArray[np.int64]:
+    """(F,) connected-component label of each face (faces sharing a vertex are connected)."""
+    from scipy.sparse.csgraph import connected_components
+
+    _, labels = connected_components(faces_sharing_vertices(faces, vertex_count),
+                                     directed=False)
     return np.asarray(labels, dtype=np.int64)
 
 

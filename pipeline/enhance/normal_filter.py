@@ -20,7 +20,8 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
-from pipeline.mesh import TriangleMesh, mean_edge_length_m
+from pipeline.mesh import TriangleMesh, face_normals, mean_edge_length_m
+from pipeline.mesh_repair import face_areas, faces_sharing_vertices
 
 FloatArray = NDArray[np.float64]
 Faces = NDArray[np.int32]
@@ -54,25 +55,11 @@ class NormalFilterConfig:
             raise ValueError("normal_filter: range_sigma and spatial_sigma_edges must be > 0")
 
 
-def face_frames(vertices_m: FloatArray, faces: Faces
-                ) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """(F, 3) unit normals (zero where degenerate), (F,) areas in m² and (F, 3) centroids."""
-    tri = vertices_m[faces]
-    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    twice_area = np.linalg.norm(cross, axis=1)
-    normals = cross / np.maximum(twice_area, 1e-300)[:, None]
-    return normals, 0.5 * twice_area, tri.mean(axis=1)
-
-
 def face_neighbours(faces: Faces, vertex_count: int
                     ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
     """(P,) face and (P,) neighbour index of every ordered pair of distinct faces that share
     a vertex, sorted by face."""
-    face_count = len(faces)
-    incidence = sp.csr_matrix(
-        (np.ones(3 * face_count), (np.repeat(np.arange(face_count), 3), faces.ravel())),
-        shape=(face_count, vertex_count))
-    pairs = (incidence @ incidence.T).tocoo()
+    pairs = faces_sharing_vertices(faces, vertex_count).tocoo()
     distinct = pairs.row != pairs.col
     return pairs.row[distinct].astype(np.int64), pairs.col[distinct].astype(np.int64)
 
@@ -81,7 +68,8 @@ def filtered_normals(vertices_m: FloatArray, faces: Faces, config: NormalFilterC
                      ) -> FloatArray:
     """(F, 3) the faces' unit normals after `config.normal_iterations` rounds of bilateral
     averaging over the faces that share a vertex (the spatial weight fixed by the input)."""
-    normals, areas, centroids = face_frames(vertices_m, faces)
+    normals, areas = face_normals(vertices_m, faces), face_areas(vertices_m, faces)
+    centroids = vertices_m[faces].mean(axis=1)
     face, other = face_neighbours(faces, len(vertices_m))
     row_starts = np.searchsorted(face, np.arange(len(faces) + 1))  # `face` comes sorted
     spatial_sigma_m = config.spatial_sigma_edges * mean_edge_length_m(
