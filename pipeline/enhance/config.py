@@ -13,6 +13,7 @@ from pipeline.enhance.normal_filter import NormalFilterConfig, normal_filter
 from pipeline.enhance.render import DepthRenders, make_views, render_depth, view_directions
 from pipeline.enhance.update import UpdateConfig, ViewSteps, apply_view_steps, view_steps
 from pipeline.mesh import TriangleMesh, mean_edge_length_m
+from pipeline.mesh_order import reordered, restored, spatial_order
 
 STAGE_PROGRESS = {"render": 0.03, "presmooth": 0.33, "network": 0.5, "update": 0.54,
                   "remesh": 1.0}
@@ -177,16 +178,20 @@ def enhance_mesh(
     if skips_enhancement(mesh, config):
         done("remesh")
         return mesh
-    inputs = update_inputs(mesh, config, device, done)
+    # The stages up to the light remesh gather neighbours all over the mesh; in a spatial
+    # order they hit the cache (beetle's update 11.1 -> 9 s on 2 CPU cores).
+    order = spatial_order(mesh)
+    ordered = reordered(mesh, order)
+    inputs = update_inputs(ordered, config, device, done)
     done("presmooth")
     learned = config.learned_gain and config.method != "views"
     enhanced = enhance_renders(inputs.base_renders, inputs.renders,
                                replace(config, correction_gain=1.0) if learned else config)
     done("network")
     steps = view_steps(inputs.base, inputs.base_renders, enhanced, inputs.update)
-    gain = learned_vertex_gain(mesh, steps, config) if learned else None
+    gain = learned_vertex_gain(ordered, steps, config) if learned else None
     result, _ = apply_view_steps(inputs.base, steps, inputs.update, gain)
-    result = normal_filter(result, config.normal_filter)
+    result = restored(normal_filter(result, config.normal_filter), order)
     done("update")
     if config.remesh_iterations > 0:
         result = light_remesh(result, config.remesh_iterations)

@@ -56,12 +56,11 @@ class NormalFilterConfig:
 
 
 def face_neighbours(faces: Faces, vertex_count: int
-                    ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-    """(P,) face and (P,) neighbour index of every ordered pair of distinct faces that share
-    a vertex, sorted by face."""
-    pairs = faces_sharing_vertices(faces, vertex_count).tocoo()
-    distinct = pairs.row != pairs.col
-    return pairs.row[distinct].astype(np.int64), pairs.col[distinct].astype(np.int64)
+                    ) -> tuple[NDArray[np.int32], NDArray[np.int32]]:
+    """The faces that share a vertex with each face, itself included, as CSR rows: (P,)
+    neighbour indices and the (F + 1,) starts of each face's row in them."""
+    pairs = faces_sharing_vertices(faces, vertex_count)
+    return pairs.indices, pairs.indptr
 
 
 def filtered_normals(vertices_m: FloatArray, faces: Faces, config: NormalFilterConfig
@@ -70,18 +69,20 @@ def filtered_normals(vertices_m: FloatArray, faces: Faces, config: NormalFilterC
     averaging over the faces that share a vertex (the spatial weight fixed by the input)."""
     normals, areas = face_normals(vertices_m, faces), face_areas(vertices_m, faces)
     centroids = vertices_m[faces].mean(axis=1)
-    face, other = face_neighbours(faces, len(vertices_m))
-    row_starts = np.searchsorted(face, np.arange(len(faces) + 1))  # `face` comes sorted
+    other, row_starts = face_neighbours(faces, len(vertices_m))
+    row_lengths = np.diff(row_starts)
     spatial_sigma_m = config.spatial_sigma_edges * mean_edge_length_m(
         TriangleMesh(vertices_m=vertices_m, faces=faces))
-    near = areas[other] * np.exp(
-        -np.sum((centroids[face] - centroids[other]) ** 2, axis=1) / (2 * spatial_sigma_m**2))
+    gap_m = np.repeat(centroids, row_lengths, axis=0) - centroids[other]
+    # A face is its own neighbour: at no distance and alike, its weight is its area.
+    near = areas[other] * np.exp(-np.einsum("ij,ij->i", gap_m, gap_m) / (2 * spatial_sigma_m**2))
+    averaging = sp.csr_matrix((near, other, row_starts), shape=(len(faces), len(faces)))
     for _ in range(config.normal_iterations):
         # |n_f - n_g|² = 2 - 2 n_f·n_g for unit normals.
-        likeness = np.einsum("ij,ij->i", normals[face], normals[other])
-        weight = near * np.exp((likeness - 1.0) / config.range_sigma**2)
-        averaging = sp.csr_matrix((weight, other, row_starts), shape=(len(faces), len(faces)))
-        summed = normals * areas[:, None] + averaging @ normals
+        likeness = np.einsum("ij,ij->i", np.repeat(normals, row_lengths, axis=0),
+                             normals[other])
+        averaging.data = near * np.exp((likeness - 1.0) / config.range_sigma**2)
+        summed = averaging @ normals
         normals = summed / np.maximum(np.linalg.norm(summed, axis=1, keepdims=True), 1e-300)
     return normals
 
@@ -90,19 +91,25 @@ def fit_to_normals(vertices_m: FloatArray, faces: Faces, normals: FloatArray,
                    iterations: int) -> FloatArray:
     """(V, 3) vertices moved so that the faces lie across `normals` (F, 3): each round moves
     a vertex by the mean, over its faces, of its offset to the face's centroid along the face's
-    normal (Sun et al. 2007), so vertices move along the normals only."""
+    normal (Sun et al. 2007), so vertices move along the normals only.
+
+    That mean is (Σ_f n_f (n_f · c_f) - (Σ_f n_f n_fᵀ) x) / k over a vertex's k faces; the
+    normals are fixed, so each vertex's 3 × 3 sum is formed once and a round costs one face
+    sum."""
+    corners = faces.ravel()
+    # (V, F): a vertex's sum over its faces.
+    over_faces = sp.csr_matrix(
+        (np.ones(len(corners)), (corners, np.repeat(np.arange(len(faces)), 3))),
+        shape=(len(vertices_m), len(faces)))
+    face_count = np.asarray(over_faces.sum(axis=1))
+    projectors = (over_faces @ np.einsum("fi,fj->fij", normals, normals).reshape(-1, 9)
+                  ).reshape(-1, 3, 3)
     out = vertices_m.copy()
-    corners = faces.T.ravel()  # corner-major: every face's first corners, then second, third
-    corner_normals = np.tile(normals, (3, 1))
-    face_count_per_vertex = np.bincount(corners, minlength=len(vertices_m))
-    # (V, 3F): a vertex's mean over the corners it is, one product a round.
-    mean_over_corners = sp.csr_matrix(
-        (1.0 / face_count_per_vertex[corners], (corners, np.arange(len(corners)))),
-        shape=(len(vertices_m), len(corners)))
     for _ in range(iterations):
-        to_centroid = np.tile(out[faces].mean(axis=1), (3, 1)) - out[corners]
-        along = np.einsum("ij,ij->i", corner_normals, to_centroid)[:, None] * corner_normals
-        out += mean_over_corners @ along
+        plane_offset_m = np.einsum("ij,ij->i", normals, out[faces].mean(axis=1))
+        toward_planes = over_faces @ (normals * plane_offset_m[:, None]) - np.einsum(
+            "vij,vj->vi", projectors, out)
+        out += toward_planes / np.maximum(face_count, 1)
     return out
 
 

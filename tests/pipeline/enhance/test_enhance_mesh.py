@@ -188,3 +188,24 @@ def test_the_view_update_ends_with_the_normal_filter() -> None:
     assert filtered.face_count == unfiltered.face_count
     assert not np.allclose(filtered.vertices_m, unfiltered.vertices_m)
     assert radial_rms_m(filtered) < radial_rms_m(unfiltered)
+
+
+def test_the_output_keeps_the_input_order_whatever_it_is() -> None:
+    from pipeline.enhance.data import noisy_along_normals
+    from pipeline.mesh_order import MeshOrder, reordered
+    from tests.pipeline.enhance.conftest import sphere
+
+    # The stages run in a spatial order of their own and hand back the input's: so a shuffled
+    # input gives the same output, shuffled alike.
+    noisy = noisy_along_normals(sphere(0.5, 48), 0.01, np.random.default_rng(0))
+    rng = np.random.default_rng(1)
+    shuffle = MeshOrder(vertex_order=rng.permutation(noisy.vertex_count),
+                        face_order=rng.permutation(noisy.face_count))
+    config = EnhanceConfig(method="regressor", resolution=64, remesh_iterations=0,
+                           min_noise_ratio=0.0)
+    out = enhance_mesh(noisy, config)
+    shuffled_out = enhance_mesh(reordered(noisy, shuffle), config)
+    expected = reordered(out, shuffle)
+    assert np.array_equal(shuffled_out.faces, expected.faces)
+    np.testing.assert_allclose(shuffled_out.vertices_m, expected.vertices_m, atol=1e-6)
+    assert not np.allclose(out.vertices_m, noisy.vertices_m)

@@ -1,0 +1,72 @@
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from pipeline.mesh import TriangleMesh
+from pipeline.mesh_order import morton_codes, reordered, restored, spatial_order
+from tests.pipeline.enhance.test_boundary import grid
+
+
+def _random_mesh(seed: int, vertex_count: int, face_count: int) -> TriangleMesh:
+    rng = np.random.default_rng(seed)
+    return TriangleMesh(
+        vertices_m=rng.normal(size=(vertex_count, 3)),
+        faces=rng.integers(0, vertex_count, (face_count, 3)).astype(np.int32),
+        vertex_colors=rng.integers(0, 256, (vertex_count, 3)).astype(np.uint8),
+        vertex_normals=rng.normal(size=(vertex_count, 3)).astype(np.float32))
+
+
+def _corner_positions(mesh: TriangleMesh) -> set[tuple[float, ...]]:
+    """Each face as its corners' coordinates, its winding kept (rotated to start lowest)."""
+    out = set()
+    for corners in mesh.vertices_m[mesh.faces]:
+        start = min(range(3), key=lambda c: tuple(corners[c]))
+        out.add(tuple(np.roll(corners, -start, axis=0).ravel()))
+    return out
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), vertex_count=st.integers(3, 60),
+       face_count=st.integers(1, 80))
+def test_reordering_keeps_the_surface_and_restoring_undoes_it(
+        seed: int, vertex_count: int, face_count: int) -> None:
+    mesh = _random_mesh(seed, vertex_count, face_count)
+    order = spatial_order(mesh)
+    moved = reordered(mesh, order)
+    assert moved.faces.dtype == np.int32
+    assert _corner_positions(moved) == _corner_positions(mesh)
+    # Colours and normals travel with their vertices.
+    def coloured(m: TriangleMesh) -> set[tuple[float, ...]]:
+        return {tuple(row) for row in np.hstack([m.vertices_m, m.vertex_colors])}
+
+    assert coloured(moved) == coloured(mesh)
+    back = restored(moved, order)
+    for name in ("vertices_m", "faces", "vertex_colors", "vertex_normals"):
+        assert np.array_equal(getattr(back, name), getattr(mesh, name))
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(12, 40))
+def test_the_spatial_order_brings_neighbours_together(seed: int, n: int) -> None:
+    mesh = grid(n, 0.01)
+    inverse = np.random.default_rng(seed).permutation(mesh.vertex_count)  # old -> new index
+    shuffled = TriangleMesh(vertices_m=mesh.vertices_m[np.argsort(inverse)],
+                            faces=inverse[mesh.faces].astype(np.int32))
+
+    def mean_index_gap(m: TriangleMesh) -> float:
+        return float(np.abs(m.faces - np.roll(m.faces, 1, axis=1)).mean())
+
+    ordered = reordered(shuffled, spatial_order(shuffled))
+    assert mean_index_gap(ordered) < 0.25 * mean_index_gap(shuffled)
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), axis=st.integers(0, 2))
+def test_morton_codes_grow_along_each_axis(seed: int, axis: int) -> None:
+    rng = np.random.default_rng(seed)
+    points = np.repeat(rng.uniform(-1, 1, (1, 3)), 50, axis=0)
+    points[:, axis] = np.sort(rng.uniform(-1, 1, 50))
+    # The bounding cube spans more than the line, as in a mesh.
+    codes = morton_codes(np.vstack([points, [[-2.0, -2.0, -2.0], [2.0, 2.0, 2.0]]]))[:50]
+    assert np.all(np.diff(codes.astype(np.int64)) >= 0)
+    assert codes[-1] > codes[0]
