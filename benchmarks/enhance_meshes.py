@@ -5,7 +5,8 @@
 The acceptance asks that the targets hold on meshes the model never saw. Here each mesh but the
 bunny (which `enhance.py` scores in full) goes through the same protocol (1 m high, 5 mm edges,
 ±1 cm uniform noise along normals, 6 views at 256²): the classical smoothers at their best count
-(a coarse sweep, as `enhance.py --quick`), the selector alone, the regressor and the LDM at
+(a coarse sweep, as `enhance.py --quick`), the selector alone and with the update's ending
+(normal filter, light remesh) but no network, the regressor and the LDM at
 4 steps (with the light remesh, and without it), and the targets `enhance.py` checks (less the
 timing ones). Each mesh is labelled by what the shipped weights did with it: `train` (the depth
 networks, the selector and the vertex gains trained on it, so not a fair test), `validation` (never
@@ -35,6 +36,7 @@ from enhance import (  # noqa: E402
     bunny_protocol,
     run_method,
     score,
+    selector_same_ending,
     targets,
 )
 
@@ -60,6 +62,7 @@ def mesh_report(meshes: Path, name: str, weights: dict | None) -> dict:
     base = EnhanceConfig(weights=weights)
     methods["adaptive_twicing"] = run_method(noisy, truth, EnhanceConfig(method="adaptive"))
     methods["bilateral_normal_filtering"] = best_normal_filtering(noisy, truth)
+    methods["selector_same_ending"] = selector_same_ending(noisy, truth, base)
     del methods["bilateral_normal_filtering"]["rms_by_setting_mm"]
     for label, cfg in (
         ("selector", replace(base, method="selector")),
@@ -83,6 +86,7 @@ def mesh_report(meshes: Path, name: str, weights: dict | None) -> dict:
         "targets": found,
         "issue_targets_met": all(held[k] for k in ISSUE_CHECKS),
         "networks_beat_selector": held["rms_gain_over_selector"] > 0,
+        "networks_beat_selector_same_ending": held["rms_gain_over_selector_same_ending"] > 0,
     }
 
 
@@ -112,7 +116,7 @@ def main() -> None:
         except ValueError as exc:  # the protocol's remesher refuses non-manifold input
             report["meshes"][name] = {"role": role(name), "error": str(exc)}
         row = report["meshes"][name]
-        shown = ("laplacian", "selector", "ldm_4_steps")
+        shown = ("laplacian", "selector", "selector_same_ending", "ldm_4_steps")
         brief = {k: row["methods"][k]["c2m_rms_mm"] for k in shown} if "methods" in row else row
         print(name, json.dumps(brief), file=sys.stderr, flush=True)
     report["summary"] = summary(report["meshes"])
@@ -134,6 +138,8 @@ def summary(rows: dict) -> dict:
             "issue_targets_met": sorted(n for n, r in scored.items() if r["issue_targets_met"]),
             "networks_beat_selector": sorted(
                 n for n, r in scored.items() if r["networks_beat_selector"]),
+            "networks_beat_selector_same_ending": sorted(
+                n for n, r in scored.items() if r["networks_beat_selector_same_ending"]),
             "mean_rms_gain_over_best_classical": round(float(np.mean(gains)), 4),
             "min_rms_gain_over_best_classical": round(float(np.min(gains)), 4),
         }
