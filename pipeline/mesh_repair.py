@@ -38,10 +38,17 @@ def edge_table(faces: Faces) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
     a = np.concatenate([faces[:, 1], faces[:, 2], faces[:, 0]]).astype(np.int64)
     b = np.concatenate([faces[:, 2], faces[:, 0], faces[:, 1]]).astype(np.int64)
     low, high = np.minimum(a, b), np.maximum(a, b)
-    stride = int(high.max(initial=0)) + 1
-    keys, inverse = np.unique(low * stride + high, return_inverse=True)
-    edges = np.column_stack([keys // stride, keys % stride])
-    return edges, inverse.reshape(3, -1).T
+    keys = low * (int(high.max(initial=0)) + 1) + high
+    # np.unique by hand, with a stable sort: on faces in a spatial order (`mesh_order`) the
+    # keys come in long sorted runs, which it merges rather than sorts (twice as fast).
+    order = np.argsort(keys, kind="stable")
+    sorted_keys = keys[order]
+    first = np.ones(len(keys), dtype=bool)
+    first[1:] = sorted_keys[1:] != sorted_keys[:-1]
+    inverse = np.empty(len(keys), dtype=np.int64)
+    inverse[order] = np.cumsum(first) - 1
+    kept = order[first]
+    return np.column_stack([low[kept], high[kept]]), inverse.reshape(3, -1).T
 
 
 def faces_per_edge(opposite: NDArray[np.int64], edge_count: int) -> NDArray[np.int64]:

@@ -26,6 +26,7 @@ from numpy.typing import NDArray
 
 from pipeline.angle_cleanup import enforce_angles
 from pipeline.mesh import TriangleMesh
+from pipeline.mesh_order import reordered, spatial_order
 from pipeline.mesh_repair import (
     edge_table,
     faces_per_edge,
@@ -247,9 +248,14 @@ def _cleaned_up(vertices_m: FloatArray, faces: Faces, config: RemeshConfig,
     faces' `triangle_angles_deg`, where they are already known)."""
     angles = triangle_angles_deg(vertices_m, faces) if angles is None else angles
     stats["angles_before_cleanup"] = _angle_figures(angles, config)
+    # Pass after pass the clean-up builds edge tables and gathers neighbours: on the mesh in
+    # a spatial order both run about twice as fast.
+    mesh = TriangleMesh(vertices_m=vertices_m, faces=faces)
+    order = spatial_order(mesh)
+    ordered = reordered(mesh, order)
     vertices_m, faces, angles, stats["angle_cleanup"] = enforce_angles(
-        vertices_m, faces, angles, config.min_angle_deg, config.max_angle_deg,
-        config.cleanup_passes)
+        ordered.vertices_m, ordered.faces, angles[order.face_order], config.min_angle_deg,
+        config.max_angle_deg, config.cleanup_passes)
     stats["angles"] = _angle_figures(angles, config)
     return TriangleMesh(vertices_m=vertices_m, faces=faces), stats
 

@@ -34,6 +34,21 @@ def test_edge_table_lists_each_edge_once_and_opposite_corners() -> None:
             assert list(edges[row[corner]]) == pair
 
 
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), vertex_count=st.integers(3, 30),
+       face_count=st.integers(0, 60))
+def test_edge_table_sorts_edges_and_names_each_corners_opposite_edge(
+        seed: int, vertex_count: int, face_count: int) -> None:
+    faces = np.random.default_rng(seed).integers(0, vertex_count, (face_count, 3)).astype(np.int32)
+    edges, opposite = edge_table(faces)
+    expected = sorted({tuple(sorted((int(f[(c + 1) % 3]), int(f[(c + 2) % 3]))))
+                       for f in faces for c in range(3)})
+    assert edges.tolist() == [list(e) for e in expected]
+    for f, row in zip(faces, opposite, strict=True):
+        for c in range(3):
+            assert set(edges[row[c]].tolist()) == {f[(c + 1) % 3], f[(c + 2) % 3]}
+
+
 def test_angles_of_a_right_triangle() -> None:
     v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], dtype=float)
     np.testing.assert_allclose(triangle_angles_deg(v, np.array([[0, 1, 2]], np.int32)),
