@@ -178,8 +178,7 @@ def enhance_mesh(
     if skips_enhancement(mesh, config):
         done("remesh")
         return mesh
-    # The stages up to the light remesh gather neighbours all over the mesh; in a spatial
-    # order they hit the cache (beetle's update 11.1 -> 9 s on 2 CPU cores).
+    # The stages gather neighbours all over the mesh; in a spatial order they hit the cache.
     order = spatial_order(mesh)
     ordered = reordered(mesh, order)
     inputs = update_inputs(ordered, config, device, done)
@@ -191,10 +190,12 @@ def enhance_mesh(
     steps = view_steps(inputs.base, inputs.base_renders, enhanced, inputs.update)
     gain = learned_vertex_gain(ordered, steps, config) if learned else None
     result, _ = apply_view_steps(inputs.base, steps, inputs.update, gain)
-    result = restored(normal_filter(result, config.normal_filter), order)
+    result = normal_filter(result, config.normal_filter)
     done("update")
-    if config.remesh_iterations > 0:
-        result = light_remesh(result, config.remesh_iterations)
+    # The light remesh makes connectivity of its own, and in the spatial order it runs faster
+    # too (bunny 2.3 -> 1.7 s); without it the output keeps the input's order.
+    result = (light_remesh(result, config.remesh_iterations) if config.remesh_iterations > 0
+              else restored(result, order))
     done("remesh")
     return result
 
