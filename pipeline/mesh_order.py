@@ -2,8 +2,9 @@
 
 Meshes from the remesher come with their vertices in no spatial order: neighbours sit far apart
 in memory, and every sparse product and neighbour gather over them misses the cache. Sorted
-along a Morton (Z-order) curve, neighbours are mostly near each other in memory too; the
-enhancement runs on the sorted mesh and hands back the input's order.
+along a Morton (Z-order) curve, neighbours are mostly near each other in memory too. The
+enhancement runs on the sorted mesh (and hands back the input's order where it keeps the
+connectivity); the remesh's angle clean-up runs on it too.
 """
 
 from __future__ import annotations
@@ -16,8 +17,8 @@ from numpy.typing import NDArray
 from pipeline.mesh import TriangleMesh
 
 MORTON_BITS = 10
-"""Bits per axis of the Morton code: a 1024³ grid over the bounding box, finer than needed
-for memory order (a few vertices per cell on 100 k-vertex meshes)."""
+"""Bits per axis of the Morton code: a 1024³ grid over the bounding cube, cells smaller than
+an edge on the meshes enhanced here (a 1 m bunny's 5 mm edges span five)."""
 
 
 @dataclass(frozen=True)
@@ -33,6 +34,8 @@ class MeshOrder:
 def morton_codes(points_m: NDArray[np.float64], bits: int = MORTON_BITS) -> NDArray[np.uint64]:
     """(N,) Z-order codes of (N, 3) points: their cells in a 2^bits grid over the bounding
     cube, the cells' coordinate bits interleaved (x lowest)."""
+    if len(points_m) == 0:
+        return np.zeros(0, dtype=np.uint64)
     low = points_m.min(axis=0)
     span = max(float(np.ptp(points_m, axis=0).max()), 1e-300)
     cells = np.minimum(((points_m - low) / span * 2**bits).astype(np.uint64), 2**bits - 1)

@@ -70,3 +70,10 @@ def test_morton_codes_grow_along_each_axis(seed: int, axis: int) -> None:
     codes = morton_codes(np.vstack([points, [[-2.0, -2.0, -2.0], [2.0, 2.0, 2.0]]]))[:50]
     assert np.all(np.diff(codes.astype(np.int64)) >= 0)
     assert codes[-1] > codes[0]
+
+
+def test_an_empty_mesh_has_an_empty_order() -> None:
+    empty = TriangleMesh(vertices_m=np.zeros((0, 3)), faces=np.zeros((0, 3), np.int32))
+    order = spatial_order(empty)
+    assert len(order.vertex_order) == 0 and len(order.face_order) == 0
+    assert reordered(empty, order).vertex_count == 0
