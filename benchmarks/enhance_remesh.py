@@ -10,7 +10,8 @@ RMS (result vertices to the truth, which depends on where the vertices lie), the
 (truth vertices to the result surface, which does not) and the normal error, with the share of
 the update's faces outside the remesh stage's angle criteria, and of each result's. Last, what
 the enhance stage keeps (`light_remesh`: the full remesh, or the clean-up alone where the
-kernel adds faces outside the criteria).
+kernel adds faces outside the criteria, or leaves an input vertex more than two edges from
+every vertex of its result: `kernel_lost_edges`).
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ from enhance import bunny_protocol, score  # noqa: E402
 from pipeline.enhance import EnhanceConfig, enhance_mesh  # noqa: E402
 from pipeline.enhance.config import light_remesh  # noqa: E402
 from pipeline.mesh import TriangleMesh, mean_edge_length_m  # noqa: E402
-from pipeline.remesh import RemeshConfig, angle_stats, remesh  # noqa: E402
+from pipeline.remesh import RemeshConfig, angle_stats, remesh, surface_lost_edges  # noqa: E402
 
 DEFAULT_MESHES = ("stanford-bunny", "spot", "fandisk", "teapot", "cow", "cheburashka", "homer",
                   "rocker-arm", "suzanne", "beetle")
@@ -51,7 +52,11 @@ def mesh_report(meshes: Path, name: str) -> dict:
     out = {"no_remesh": scores(updated, truth, full)}
     for label, config in (("full", full), ("kernel_only", replace(full, cleanup_passes=0)),
                           ("cleanup_only", replace(full, iterations=0))):
-        out[label] = scores(remesh(updated, config)[0], truth, full)
+        result = remesh(updated, config)[0]
+        out[label] = scores(result, truth, full)
+        if label == "kernel_only":
+            out[label]["kernel_lost_edges"] = surface_lost_edges(
+                updated.vertices_m, result.vertices_m, full.target_edge_length_m)
     out["light_remesh"] = scores(light_remesh(updated, 1), truth, full)
     return out
 

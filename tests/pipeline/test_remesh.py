@@ -180,3 +180,34 @@ def test_a_coarse_open_mesh_is_remeshed_without_hubs_at_its_boundary() -> None:
     lengths = _edge_lengths(out)
     assert lengths[boundary[edges].any(axis=1)].max() < 2 * 0.04
     assert _distance(out.vertices_m, TriangleMesh(v, f)).max() < 2e-3
+
+
+def test_surface_lost_edges_is_the_furthest_input_vertex_from_the_result() -> None:
+    from pipeline.remesh import surface_lost_edges
+
+    line = np.stack([np.linspace(0.0, 1.0, 11), np.zeros(11), np.zeros(11)], axis=1)
+    assert surface_lost_edges(line, line, 0.1) == 0.0
+    assert surface_lost_edges(line, line[:6], 0.1) == pytest.approx(5.0)
+    assert surface_lost_edges(line[:6], line, 0.1) == 0.0
+
+
+@pytest.mark.parametrize("isolate", [True, False])
+def test_the_kernel_is_dropped_where_it_leaves_the_input_surface(isolate: bool) -> None:
+    """One round of the kernel asked for edges 26 times shorter than an icosahedron's leaves
+    its faces as they were, so its input's vertices lie 5 target edges from the result's:
+    dropped, the input cleaned up instead. A sphere remeshed near its own edge length keeps
+    every vertex within an edge of the result: kept."""
+    for subdivisions, edge_m, kept in ((0, 0.02, False), (2, 0.15, True)):
+        s = trimesh.creation.icosphere(subdivisions, radius=0.5)
+        mesh = TriangleMesh(np.asarray(s.vertices, np.float64), np.asarray(s.faces, np.int32))
+        config = RemeshConfig(target_edge_length_m=edge_m, iterations=1, isolate=isolate,
+                              max_kernel_lost_edges=2.0, min_component_share=0.0)
+        out, stats = remesh(mesh, config)
+        assert stats["kernel_kept"] is kept
+        assert (stats["kernel_lost_edges"] > 2.0) is not kept
+        plain, _ = remesh(mesh, replace(config, max_kernel_lost_edges=None,
+                                        iterations=1 if kept else 0))
+        assert out.face_count == plain.face_count
+        np.testing.assert_allclose(out.vertices_m, plain.vertices_m)
+    with pytest.raises(ValueError, match="max_kernel_lost_edges"):
+        RemeshConfig(max_kernel_lost_edges=0.0)
