@@ -190,7 +190,7 @@ def enhance_mesh(
     steps = view_steps(inputs.base, inputs.base_renders, enhanced, inputs.update)
     gain = learned_vertex_gain(ordered, steps, config) if learned else None
     result, _ = apply_view_steps(inputs.base, steps, inputs.update, gain)
-    result = normal_filter(result, config.normal_filter)
+    result = normal_filter(result, config.normal_filter, device)
     done("update")
     # The light remesh makes connectivity of its own, and in the spatial order it runs faster
     # too (bunny 2.3 -> 1.7 s); without it the output keeps the input's order.

@@ -63,61 +63,90 @@ def face_neighbours(faces: Faces, vertex_count: int
     return pairs.indices, pairs.indptr
 
 
-def filtered_normals(vertices_m: FloatArray, faces: Faces, config: NormalFilterConfig
-                     ) -> FloatArray:
+def filtered_normals(vertices_m: FloatArray, faces: Faces, config: NormalFilterConfig,
+                     device: str = "cpu") -> FloatArray:
     """(F, 3) the faces' unit normals after `config.normal_iterations` rounds of bilateral
-    averaging over the faces that share a vertex (the spatial weight fixed by the input)."""
+    averaging over the faces that share a vertex (the spatial weight fixed by the input); the
+    rounds run in torch on `device`.
+
+    The products of each neighbour pair's normals (and, once, centroids) are formed only
+    where the pair is, as a sampled product on the sparse pattern, then a round is one sparse
+    product: on beetle's update (516 k faces, 6.6 M pairs) 0.10 s and 0.02 s a round, where
+    gathering both normals of every pair took 0.30 s."""
+    import torch
+
+    from pipeline.enhance.device import csr_tensor, on_device
+
     normals, areas = face_normals(vertices_m, faces), face_areas(vertices_m, faces)
-    centroids = vertices_m[faces].mean(axis=1)
     other, row_starts = face_neighbours(faces, len(vertices_m))
-    row_lengths = np.diff(row_starts)
     spatial_sigma_m = config.spatial_sigma_edges * mean_edge_length_m(
         TriangleMesh(vertices_m=vertices_m, faces=faces))
-    gap_m = np.repeat(centroids, row_lengths, axis=0) - centroids[other]
+    starts, columns = (on_device(a.astype(np.int64), device) for a in (row_starts, other))
+    shape = (len(faces), len(faces))
+    pattern = csr_tensor(starts, columns, on_device(np.zeros(len(other)), device), shape)
+
+    def pair_products(field: torch.Tensor) -> torch.Tensor:
+        """(P,) each neighbour pair's product of `field`'s rows, in the pattern's order."""
+        return torch.sparse.sampled_addmm(pattern, field, field.T.contiguous(), beta=0.0).values()
+
+    # |c_f - c_g|² from products, about the centroids' mean so that they cancel less.
+    centroids_m = vertices_m[faces].mean(axis=1)
+    centroids = on_device(centroids_m - centroids_m.mean(axis=0), device)
+    squared = (centroids * centroids).sum(dim=1)
+    gap_m2 = (squared.repeat_interleave(starts.diff()) + squared[columns]
+              - 2.0 * pair_products(centroids)).clamp_min(0.0)
     # A face is its own neighbour: at no distance and alike, its weight is its area.
-    near = areas[other] * np.exp(-np.einsum("ij,ij->i", gap_m, gap_m) / (2 * spatial_sigma_m**2))
-    averaging = sp.csr_matrix((near, other, row_starts), shape=(len(faces), len(faces)))
+    near = on_device(areas, device)[columns] * torch.exp(-gap_m2 / (2 * spatial_sigma_m**2))
+    n = on_device(normals, device)
     for _ in range(config.normal_iterations):
         # |n_f - n_g|² = 2 - 2 n_f·n_g for unit normals.
-        likeness = np.einsum("ij,ij->i", np.repeat(normals, row_lengths, axis=0),
-                             normals[other])
-        averaging.data = near * np.exp((likeness - 1.0) / config.range_sigma**2)
-        summed = averaging @ normals
-        normals = summed / np.maximum(np.linalg.norm(summed, axis=1, keepdims=True), 1e-300)
-    return normals
+        likeness = pair_products(n)
+        averaging = csr_tensor(starts, columns,
+                               near * torch.exp((likeness - 1.0) / config.range_sigma**2), shape)
+        summed = averaging @ n
+        n = summed / summed.norm(dim=1, keepdim=True).clamp_min(1e-300)
+    return n.cpu().numpy()
 
 
 def fit_to_normals(vertices_m: FloatArray, faces: Faces, normals: FloatArray,
-                   iterations: int) -> FloatArray:
+                   iterations: int, device: str = "cpu") -> FloatArray:
     """(V, 3) vertices moved so that the faces lie across `normals` (F, 3): each round moves
     a vertex by the mean, over its faces, of its offset to the face's centroid along the face's
-    normal (Sun et al. 2007), so vertices move along the normals only.
+    normal (Sun et al. 2007), so vertices move along the normals only. In torch on `device`.
 
     That mean is (Σ_f n_f (n_f · c_f) - (Σ_f n_f n_fᵀ) x) / k over a vertex's k faces; the
     normals are fixed, so each vertex's 3 × 3 sum is formed once and a round costs one face
     sum."""
+    import torch
+
+    from pipeline.enhance.device import csr_on_device, on_device
+
     corners = faces.ravel()
     # (V, F): a vertex's sum over its faces.
-    over_faces = sp.csr_matrix(
+    summing = sp.csr_matrix(
         (np.ones(len(corners)), (corners, np.repeat(np.arange(len(faces)), 3))),
         shape=(len(vertices_m), len(faces)))
-    face_count = np.asarray(over_faces.sum(axis=1))
-    projectors = (over_faces @ np.einsum("fi,fj->fij", normals, normals).reshape(-1, 9)
-                  ).reshape(-1, 3, 3)
-    out = vertices_m.copy()
+    over_faces = csr_on_device(summing, device)
+    # (F, V): a face's centroid.
+    centroid_of = csr_on_device((summing.T / 3.0).tocsr(), device)
+    face_count = on_device(np.maximum(np.asarray(summing.sum(axis=1)), 1), device)
+    n = on_device(normals, device)
+    projectors = (over_faces @ torch.einsum("fi,fj->fij", n, n).reshape(-1, 9)).reshape(-1, 3, 3)
+    out = on_device(vertices_m, device)
     for _ in range(iterations):
-        plane_offset_m = np.einsum("ij,ij->i", normals, out[faces].mean(axis=1))
-        toward_planes = over_faces @ (normals * plane_offset_m[:, None]) - np.einsum(
+        plane_offset_m = (n * (centroid_of @ out)).sum(dim=1, keepdim=True)
+        toward_planes = over_faces @ (n * plane_offset_m) - torch.einsum(
             "vij,vj->vi", projectors, out)
-        out += toward_planes / np.maximum(face_count, 1)
-    return out
+        out = out + toward_planes / face_count
+    return out.cpu().numpy()
 
 
-def normal_filter(mesh: TriangleMesh, config: NormalFilterConfig) -> TriangleMesh:
-    """The mesh with its face normals bilaterally filtered and its vertices fitted to them;
-    the mesh itself where `config.normal_iterations` is 0."""
+def normal_filter(mesh: TriangleMesh, config: NormalFilterConfig, device: str = "cpu"
+                  ) -> TriangleMesh:
+    """The mesh with its face normals bilaterally filtered and its vertices fitted to them,
+    in torch on `device`; the mesh itself where `config.normal_iterations` is 0."""
     if config.normal_iterations == 0:
         return mesh
-    normals = filtered_normals(mesh.vertices_m, mesh.faces, config)
-    return mesh.with_vertices(
-        fit_to_normals(mesh.vertices_m, mesh.faces, normals, config.vertex_iterations))
+    normals = filtered_normals(mesh.vertices_m, mesh.faces, config, device)
+    return mesh.with_vertices(fit_to_normals(mesh.vertices_m, mesh.faces, normals,
+                                             config.vertex_iterations, device))

@@ -8,10 +8,12 @@ from pipeline.enhance.data import noisy_along_normals
 from pipeline.enhance.normal_filter import (
     NormalFilterConfig,
     face_neighbours,
+    filtered_normals,
     fit_to_normals,
     normal_filter,
 )
-from pipeline.mesh import TriangleMesh, mean_edge_length_m
+from pipeline.mesh import TriangleMesh, face_normals, mean_edge_length_m
+from pipeline.mesh_repair import face_areas
 from tests.pipeline.enhance.conftest import radial_rms_m, sphere
 from tests.pipeline.enhance.test_boundary import grid
 
@@ -55,6 +57,34 @@ def test_face_neighbours_are_the_faces_sharing_a_vertex_itself_included() -> Non
         expected = {g for g in range(len(mesh.faces)) if set(mesh.faces[f]) & set(mesh.faces[g])}
         row = other[row_starts[f]:row_starts[f + 1]].tolist()
         assert len(row) == len(expected) and set(row) == expected
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(3, 7), rounds=st.integers(1, 3))
+def test_filtered_normals_follow_the_bilateral_average_face_by_face(
+    seed: int, n: int, rounds: int
+) -> None:
+    """The sampled products on the sparse pattern give Zheng et al.'s weighted average,
+    written out here one face and one neighbour at a time."""
+    mesh = grid(n)
+    bumpy = mesh.vertices_m + np.random.default_rng(seed).uniform(
+        -0.004, 0.004, mesh.vertices_m.shape)
+    config = NormalFilterConfig(normal_iterations=rounds)
+    faces = mesh.faces
+    normals, areas = face_normals(bumpy, faces), face_areas(bumpy, faces)
+    centroids = bumpy[faces].mean(axis=1)
+    sigma_m = config.spatial_sigma_edges * mean_edge_length_m(TriangleMesh(bumpy, faces))
+    for _ in range(rounds):
+        averaged = np.zeros_like(normals)
+        for f in range(len(faces)):
+            for g in range(len(faces)):
+                if set(faces[f]) & set(faces[g]):
+                    gap = np.sum((centroids[f] - centroids[g]) ** 2)
+                    unlike = np.sum((normals[f] - normals[g]) ** 2)
+                    averaged[f] += areas[g] * np.exp(-gap / (2 * sigma_m**2)) * np.exp(
+                        -unlike / (2 * config.range_sigma**2)) * normals[g]
+        normals = averaged / np.linalg.norm(averaged, axis=1, keepdims=True)
+    np.testing.assert_allclose(filtered_normals(bumpy, faces, config), normals, atol=1e-12)
 
 
 @settings(max_examples=20, deadline=None)
@@ -110,3 +140,11 @@ def test_bad_settings_are_named() -> None:
         NormalFilterConfig(normal_iterations=-1)
     with pytest.raises(ValueError, match="range_sigma"):
         NormalFilterConfig(range_sigma=0.0)
+
+
+@pytest.mark.skipif(not __import__("torch").cuda.is_available(), reason="no CUDA device")
+def test_the_filter_on_cuda_gives_the_cpu_result(noisy_sphere) -> None:
+    _, noisy = noisy_sphere
+    on_cpu = normal_filter(noisy, NormalFilterConfig(), "cpu")
+    on_cuda = normal_filter(noisy, NormalFilterConfig(), "cuda")
+    np.testing.assert_allclose(on_cuda.vertices_m, on_cpu.vertices_m, atol=1e-9)
