@@ -116,12 +116,22 @@ def _kernel(vertices_m: FloatArray, faces: Faces, edge_m: float, iterations: int
     return np.asarray(out_v, dtype=np.float64), np.asarray(out_f, dtype=np.int32)
 
 
+def _boundary_split_kernel(vertices_m: FloatArray, faces: Faces, edge_m: float,
+                           iterations: int) -> tuple[FloatArray, Faces]:
+    """`_kernel` on the mesh with its long boundary edges split first, which the kernel
+    cannot do as it holds the boundary, in a spatial order (`_in_spatial_order`). Both run
+    in the kernel's child, beside the caller's clean-up of the input (beetle's update: 1.1 s
+    of 3.4)."""
+    v, f, _ = _in_spatial_order(*split_boundary_edges(vertices_m, faces, edge_m))
+    return _kernel(v, f, edge_m, iterations)
+
+
 def _child_main() -> None:
     """Child process body (``python -m pipeline.remesh``): arrays in on stdin as .npz,
     the remeshed arrays out on stdout as .npz; any failure exits non-zero."""
     with np.load(io.BytesIO(sys.stdin.buffer.read()), allow_pickle=False) as data:
-        vertices, faces = _kernel(data["vertices_m"], data["faces"],
-                                  float(data["edge_m"]), int(data["iterations"]))
+        vertices, faces = _boundary_split_kernel(data["vertices_m"], data["faces"],
+                                                 float(data["edge_m"]), int(data["iterations"]))
     out = io.BytesIO()
     np.savez(out, vertices_m=vertices, faces=faces)
     sys.stdout.buffer.write(out.getvalue())
@@ -129,8 +139,9 @@ def _child_main() -> None:
 
 def start_isolated(vertices_m: FloatArray, faces: Faces, edge_m: float, iterations: int,
                    timeout_s: float) -> Callable[[], KernelOutcome]:
-    """Starts the kernel in a child interpreter and returns a call that waits for it:
-    (result, None), or (None, why it failed). The caller may work meanwhile.
+    """Starts the kernel, after the boundary split (`_boundary_split_kernel`), in a child
+    interpreter and returns a call that waits for it: (result, None), or (None, why it
+    failed). The caller may work meanwhile.
 
     A plain child process rather than multiprocessing: it never re-imports the caller's
     main module, so it works from any script, worker or test runner. A thread feeds and
@@ -223,18 +234,15 @@ def remesh(mesh: TriangleMesh, config: RemeshConfig) -> tuple[TriangleMesh, dict
     judged = (config.max_kernel_added_outside is not None
               or config.max_kernel_lost_edges is not None)
     input_cleaned = None
-    # The kernel holds the boundary, so it cannot split a long boundary edge itself.
-    kernel_input = _in_spatial_order(
-        *split_boundary_edges(vertices, faces, config.target_edge_length_m))[:2]
     if config.isolate:
-        wait = start_isolated(*kernel_input, config.target_edge_length_m, config.iterations,
+        wait = start_isolated(vertices, faces, config.target_edge_length_m, config.iterations,
                               config.timeout_s)
         if judged:
             input_cleaned = _cleaned_up(vertices, faces, config, dict(stats))
         result, warning = wait()
     else:
-        result, warning = _kernel(*kernel_input, config.target_edge_length_m,
-                                  config.iterations), None
+        result, warning = _boundary_split_kernel(vertices, faces, config.target_edge_length_m,
+                                                 config.iterations), None
     stats["warning"] = warning and f"{warning}; kept the unremeshed mesh"
     if result is not None and judged:
         given = (input_cleaned[1]["angles_before_cleanup"] if input_cleaned is not None
