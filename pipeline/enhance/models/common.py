@@ -141,4 +141,8 @@ class RowMLP(nn.Module):
 
     def logits(self, features: torch.Tensor) -> torch.Tensor:
         """(B, outputs) the MLP's raw outputs for (B, features) rows."""
-        return self.mlp((self.squash(features) - self.feature_mean) / self.feature_std)
+        return self.logits_of_squashed(self.squash(features))
+
+    def logits_of_squashed(self, squashed: torch.Tensor) -> torch.Tensor:
+        """`logits` of rows already `squash`ed (shared by models reading the same rows)."""
+        return self.mlp((squashed - self.feature_mean) / self.feature_std)

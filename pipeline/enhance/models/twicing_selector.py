@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import cast
 
 import torch
 from torch import nn
@@ -41,7 +42,11 @@ class TwicingSelector(RowMLP):
         self.config = config
 
     def forward(self, features: torch.Tensor) -> torch.Tensor:
-        return torch.softmax(self.logits(features), dim=1)
+        return self.weights_of_squashed(self.squash(features))
+
+    def weights_of_squashed(self, squashed: torch.Tensor) -> torch.Tensor:
+        """The weights of rows already `squash`ed."""
+        return torch.softmax(self.logits_of_squashed(squashed), dim=1)
 
 
 class SelectorEnsemble(nn.Module):
@@ -58,4 +63,8 @@ class SelectorEnsemble(nn.Module):
         self.config = members[0].config
 
     def forward(self, features: torch.Tensor) -> torch.Tensor:
-        return torch.stack([m(features) for m in self.members]).mean(dim=0)
+        # The rows are squashed once for all members: a third of the ensemble's time on
+        # beetle's 258 k rows when each member did it.
+        squashed = RowMLP.squash(features)
+        members = cast(Sequence[TwicingSelector], self.members)
+        return torch.stack([m.weights_of_squashed(squashed) for m in members]).mean(dim=0)
