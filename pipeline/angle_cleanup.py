@@ -8,7 +8,9 @@ shortest edge. Each pass works on an independent set of operations chosen in par
 
 The operations take the faces' angles and hand them on with the rows of the faces they
 changed recomputed: a pass touches a few hundred of a few hundred thousand faces, and
-measuring every angle again was a third of the clean-up's time.
+measuring every angle again was a third of the clean-up's time. For the same reason each
+operation builds its edge table over the faces around its candidates only
+(`_near_edge_table`).
 """
 
 from __future__ import annotations
@@ -38,30 +40,46 @@ def _rank_claims(priority: FloatArray, claims: list[NDArray[np.int64]], size: in
     return ok
 
 
+def _near_edge_table(faces: Faces, cand_face: NDArray[np.int64], vertex_count: int
+                     ) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64],
+                                NDArray[np.int64]]:
+    """`edge_table` of the faces that touch a vertex of the candidate faces: (N,) those
+    faces, ascending, their (E, 2) edges and (N, 3) opposite-edge table, and (C,) each
+    candidate's row in it. Every face at such a vertex is in it, so for each edge and vertex
+    of the candidates it says what the whole mesh's table says (the faces that use an edge,
+    whether a vertex is on the boundary, its neighbours, which pairs are edges), and its
+    edges keep their order in the whole table. On beetle's light remesh the whole tables
+    were 1.2 s of a 2.7 s clean-up; an operation has a few hundred candidates."""
+    at = np.zeros(vertex_count, dtype=bool)
+    at[faces[cand_face].ravel()] = True
+    near = np.flatnonzero(at[faces[:, 0]] | at[faces[:, 1]] | at[faces[:, 2]])
+    edges, opposite = edge_table(faces[near])
+    return near, edges, opposite, np.searchsorted(near, cand_face)
+
+
 def flip_caps(vertices_m: FloatArray, faces: Faces, angles_deg: FloatArray,
               max_angle_deg: float) -> tuple[Faces, FloatArray, int]:
     """Flip the edge opposite each angle above max_angle_deg where that makes both faces
     better (larger smallest angle) and keeps the surface unfolded. `angles_deg` (F, 3) are
     the faces' `triangle_angles_deg`. Returns faces, their angles, flips."""
     angles = angles_deg
-    worst_corner = np.argmax(angles, axis=1)
-    cand_face = np.nonzero(angles.max(axis=1) > max_angle_deg)[0]
+    cand_face = np.nonzero(_row_max(angles) > max_angle_deg)[0]
     if len(cand_face) == 0:
         return faces, angles, 0
-    edges, opposite = edge_table(faces)
+    near, edges, opposite, row = _near_edge_table(faces, cand_face, len(vertices_m))
     counts = faces_per_edge(opposite, len(edges))
-    corner = worst_corner[cand_face]
-    edge = opposite[cand_face, corner]
+    corner = np.argmax(angles[cand_face], axis=1)
+    edge = opposite[row, corner]
     interior = counts[edge] == 2
-    cand_face, corner, edge = cand_face[interior], corner[interior], edge[interior]
+    cand_face, row, corner, edge = (x[interior] for x in (cand_face, row, corner, edge))
     # Both faces of an edge may ask for the same flip: keep one request per edge.
     _, once = np.unique(edge, return_index=True)
-    cand_face, corner, edge = cand_face[once], corner[once], edge[once]
-    # An interior edge has two half-edges (face * 3 + corner): the other is their sum less this.
+    cand_face, row, corner, edge = cand_face[once], row[once], corner[once], edge[once]
+    # An interior edge has two half-edges (row * 3 + corner): the other is their sum less this.
     half_sums = np.bincount(opposite.ravel(), weights=np.arange(opposite.size, dtype=np.float64),
                             minlength=len(edges))
-    half = half_sums[edge].astype(np.int64) - (cand_face * 3 + corner)
-    other_face, other_corner = half // 3, half % 3
+    half = half_sums[edge].astype(np.int64) - (row * 3 + corner)
+    other_face, other_corner = near[half // 3], half % 3
     p = faces[cand_face, corner]
     a = faces[cand_face, (corner + 1) % 3]
     b = faces[cand_face, (corner + 2) % 3]
@@ -100,14 +118,15 @@ def collapse_needles(vertices_m: FloatArray, faces: Faces, angles_deg: FloatArra
     `angles_deg` (F, 3) are the faces' `triangle_angles_deg`. Returns the mesh, its faces'
     angles, collapses."""
     angles = angles_deg
-    cand_face = np.nonzero(angles.min(axis=1) < min_angle_deg)[0]
+    cand_face = np.nonzero(_row_min(angles) < min_angle_deg)[0]
     if len(cand_face) == 0:
         return vertices_m, faces, angles, 0
-    edges, opposite = edge_table(faces)
+    _, edges, opposite, row = _near_edge_table(faces, cand_face, len(vertices_m))
     counts = faces_per_edge(opposite, len(edges))
+    # Right at the candidates' vertices, which are all that is read of it.
     boundary_vertex = np.zeros(len(vertices_m), dtype=bool)
     boundary_vertex[edges[counts == 1].ravel()] = True
-    edge = np.unique(opposite[cand_face, np.argmin(angles[cand_face], axis=1)])
+    edge = np.unique(opposite[row, np.argmin(angles[cand_face], axis=1)])
     a, b = edges[edge, 0], edges[edge, 1]
     # A boundary end stays where it is (the kept end, a); two boundary ends are left alone.
     swap = boundary_vertex[b]
@@ -154,7 +173,7 @@ def _turned(vertices_m: FloatArray, faces: Faces, new_pos: FloatArray, new_faces
     (or leave degenerate): only faces at a or b can change, so only they are measured."""
     at_ends = np.zeros(len(vertices_m), dtype=bool)
     at_ends[a] = at_ends[b] = True
-    near = np.nonzero(at_ends[faces].any(axis=1))[0]
+    near = np.nonzero(at_ends[faces[:, 0]] | at_ends[faces[:, 1]] | at_ends[faces[:, 2]])[0]
     before = face_normals(vertices_m, faces[near])
     after = face_normals(new_pos, new_faces[near])
     turned = np.zeros(len(faces), dtype=bool)
@@ -201,18 +220,17 @@ def drop_boundary_slivers(vertices_m: FloatArray, faces: Faces, angles_deg: Floa
     `angles_deg` (F, 3) are the faces' `triangle_angles_deg`. Returns faces, their angles,
     drops."""
     angles = angles_deg
-    bad = (angles.min(axis=1) < min_angle_deg) | (angles.max(axis=1) > max_angle_deg)
-    if not bad.any():
+    cand = np.nonzero((_row_min(angles) < min_angle_deg) | (_row_max(angles) > max_angle_deg))[0]
+    if len(cand) == 0:
         return faces, angles, 0
-    edges, opposite = edge_table(faces)
+    _, edges, opposite, row = _near_edge_table(faces, cand, len(vertices_m))
     counts = faces_per_edge(opposite, len(edges))
-    on_boundary = counts[opposite] == 1  # (F, 3): edge opposite each corner is a boundary
+    on_boundary = counts[opposite[row]] == 1  # (C, 3): edge opposite each corner is a boundary
     boundary_vertex = np.zeros(len(vertices_m), dtype=bool)
     boundary_vertex[edges[counts == 1].ravel()] = True
     n_boundary = on_boundary.sum(axis=1)
-    apex = faces[np.arange(len(faces)), np.argmax(on_boundary, axis=1)]
-    removable = bad & ((n_boundary == 2) | ((n_boundary == 1) & ~boundary_vertex[apex]))
-    cand = np.nonzero(removable)[0]
+    apex = faces[cand, np.argmax(on_boundary, axis=1)]
+    cand = cand[(n_boundary == 2) | ((n_boundary == 1) & ~boundary_vertex[apex])]
     if len(cand) == 0:
         return faces, angles, 0
     priority = angles[cand].min(axis=1)
@@ -221,6 +239,16 @@ def drop_boundary_slivers(vertices_m: FloatArray, faces: Faces, angles_deg: Floa
     keep = np.ones(len(faces), dtype=bool)
     keep[chosen] = False
     return faces[keep], angles[keep], len(chosen)
+
+
+def _row_min(angles_deg: FloatArray) -> FloatArray:
+    """(F,) each row's smallest of (F, 3); twice as fast as a reduction along the rows."""
+    return np.minimum(np.minimum(angles_deg[:, 0], angles_deg[:, 1]), angles_deg[:, 2])
+
+
+def _row_max(angles_deg: FloatArray) -> FloatArray:
+    """(F,) each row's largest of (F, 3)."""
+    return np.maximum(np.maximum(angles_deg[:, 0], angles_deg[:, 1]), angles_deg[:, 2])
 
 
 def enforce_angles(vertices_m: FloatArray, faces: Faces, angles_deg: FloatArray,

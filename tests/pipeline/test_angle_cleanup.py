@@ -5,6 +5,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pipeline.angle_cleanup import (
+    _near_edge_table,
     collapse_needles,
     drop_boundary_slivers,
     enforce_angles,
@@ -87,3 +88,32 @@ def test_the_angles_handed_on_are_the_cleaned_meshs_own(seed: int, jitter: float
     # Bit for bit: the clean-up decides on these angles, so they must be the mesh's own.
     assert np.array_equal(angles, triangle_angles_deg(out_v, out_f))
     assert len(out_f) <= len(f)
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(3, 10), share=st.floats(0.02, 0.5))
+def test_the_near_edge_table_says_what_the_whole_table_says_at_the_candidates(
+        seed: int, n: int, share: float) -> None:
+    # A grid with a hole: interior, boundary and hole-rim candidates alike.
+    v, f = _grid(n)
+    rng = np.random.default_rng(seed)
+    f = f[rng.uniform(size=len(f)) > 0.15]
+    cand = np.flatnonzero(rng.uniform(size=len(f)) < share)
+    near, edges, opposite, row = _near_edge_table(f, cand, len(v))
+    whole_edges, whole_opposite = edge_table(f)
+    assert np.array_equal(near[row], cand)
+    # The candidates' edges, the same edges, used by as many faces.
+    assert np.array_equal(edges[opposite[row]], whole_edges[whole_opposite[cand]])
+    uses = np.bincount(opposite.ravel(), minlength=len(edges))
+    whole_uses = np.bincount(whole_opposite.ravel(), minlength=len(whole_edges))
+    assert np.array_equal(uses[opposite[row]], whole_uses[whole_opposite[cand]])
+    # Every edge at a candidate's vertex is there, with its use count, in the whole order.
+    at = np.zeros(len(v), dtype=bool)
+    at[f[cand].ravel()] = True
+    at_cand = at[whole_edges].any(axis=1)
+    keys = edges[:, 0] * len(v) + edges[:, 1]
+    assert np.all(np.diff(keys) > 0)
+    wanted = whole_edges[at_cand, 0] * len(v) + whole_edges[at_cand, 1]
+    found = np.searchsorted(keys, wanted)
+    assert np.array_equal(keys[found], wanted)
+    assert np.array_equal(uses[found], whole_uses[at_cand])
