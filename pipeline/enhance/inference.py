@@ -164,12 +164,25 @@ def load_vertex_gain(data: bytes):
     return model.eval()
 
 
-def vertex_gains(model, features: NDArray[np.float32]) -> NDArray[np.float64]:
-    """(V,) a loaded `VertexGainNet`'s gains for (V, F) `vertex_gain.gain_features`."""
+ROW_CHUNK = 4096
+"""Rows a per-vertex network takes at a time (`by_row_chunks`): its activations then stay in
+the cache. The selector ensemble on beetle's 258 k rows, 2 cores: 2.6 s in one batch, 2.0 s
+in chunks of 64 k rows, 1.1 s of 8 k, 1.0 s of 4 k."""
+
+
+def by_row_chunks(model, rows: NDArray[np.float32]) -> NDArray[np.float32]:
+    """(V, K) a per-row network's outputs for (V, F) rows, `ROW_CHUNK` rows at a time."""
     import torch
 
     with torch.no_grad():
-        return model(torch.from_numpy(features)).numpy().astype(np.float64)
+        rows_t = torch.from_numpy(rows)
+        return torch.cat([model(rows_t[i:i + ROW_CHUNK])
+                          for i in range(0, len(rows), ROW_CHUNK)]).numpy()
+
+
+def vertex_gains(model, features: NDArray[np.float32]) -> NDArray[np.float64]:
+    """(V,) a loaded `VertexGainNet`'s gains for (V, F) `vertex_gain.gain_features`."""
+    return by_row_chunks(model, features).astype(np.float64)
 
 
 def learned_twicing(mesh: TriangleMesh, selector: bytes, device: str | None = None
@@ -189,13 +202,9 @@ def apply_selector(model, mesh: TriangleMesh, device: str | None = None) -> Tria
 
 def selector_blend(model, candidates: TwicingCandidates) -> NDArray[np.float64]:
     """(V, 3) the candidates blended with a loaded `TwicingSelector`'s weights."""
-    import torch
-
     from pipeline.enhance.twicing_blend import blend
 
-    with torch.no_grad():
-        weights = model(torch.from_numpy(candidates.features)).numpy()
-    return blend(candidates.vertices_m, weights)
+    return blend(candidates.vertices_m, by_row_chunks(model, candidates.features))
 
 
 def presmoothed(

@@ -75,13 +75,13 @@ def filtered_normals(vertices_m: FloatArray, faces: Faces, config: NormalFilterC
     gathering both normals of every pair took 0.30 s."""
     import torch
 
-    from pipeline.enhance.device import csr_tensor, on_device
+    from pipeline.enhance.device import csr_indices, csr_tensor, on_device
 
     normals, areas = face_normals(vertices_m, faces), face_areas(vertices_m, faces)
     other, row_starts = face_neighbours(faces, len(vertices_m))
     spatial_sigma_m = config.spatial_sigma_edges * mean_edge_length_m(
         TriangleMesh(vertices_m=vertices_m, faces=faces))
-    starts, columns = (on_device(a.astype(np.int64), device) for a in (row_starts, other))
+    starts, columns = csr_indices(row_starts, other, device)
     shape = (len(faces), len(faces))
     pattern = csr_tensor(starts, columns, on_device(np.zeros(len(other)), device), shape)
 

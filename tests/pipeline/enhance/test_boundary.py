@@ -6,7 +6,14 @@ from hypothesis import strategies as st
 from pipeline.enhance.baselines import mean_operator
 from pipeline.enhance.boundary import across_boundary, boundary_half_edges, boundary_offset
 from pipeline.enhance.data import noisy_along_normals
-from pipeline.enhance.twicing_blend import TwicingBlendConfig, twicing_candidates
+from pipeline.enhance.twicing_blend import (
+    TwicingBlendConfig,
+    _power_sums,
+    _product,
+    _twicing_polynomial,
+    field_ops,
+    twicing_candidates,
+)
 from pipeline.mesh import TriangleMesh
 from tests.pipeline.enhance.conftest import sphere
 
@@ -120,3 +127,20 @@ def test_the_offset_follows_pose_and_scale():
     a, b = _offset(mesh), _offset(moved)
     assert a is not None and b is not None
     assert np.allclose(3.0 * a @ r.T, b, atol=1e-12)
+
+
+@settings(max_examples=10, deadline=None)
+@given(n=st.integers(4, 12), k=st.integers(1, 20), pilot=st.integers(1, 15),
+       seed=st.integers(0, 2**31 - 1))
+def test_a_twicing_of_the_pilot_is_the_product_polynomial_of_the_offset_steps(n, k, pilot, seed):
+    """The candidates' features twice the pilot by one run of steps on the mesh alone: with
+    the boundary left out each step is affine, and twicings are affine combinations."""
+    mesh = noisy_along_normals(grid(n), 0.003, np.random.default_rng(seed))
+    m = mean_operator(mesh.faces, mesh.vertex_count)
+    ops = field_ops(m, None, _offset(mesh))
+    p, t = _twicing_polynomial(pilot, 2), _twicing_polynomial(k, 2)
+    (pilot_m,) = _power_sums(ops.step, mesh.vertices_m, [p])
+    (stepped,) = _power_sums(ops.step, pilot_m, [t])
+    (at_once,) = _power_sums(ops.step, mesh.vertices_m, [_product(t, p)])
+    assert np.allclose(at_once, stepped, rtol=0, atol=1e-12)
+    assert not np.allclose(pilot_m, mesh.vertices_m, rtol=0, atol=1e-6)
