@@ -285,7 +285,7 @@ def surface_lost_edges(input_vertices_m: FloatArray, result_vertices_m: FloatArr
     benchmark's ten updates)."""
     from scipy.spatial import cKDTree
 
-    distance_m, _ = cKDTree(result_vertices_m).query(input_vertices_m)
+    distance_m, _ = cKDTree(result_vertices_m).query(input_vertices_m, workers=-1)
     return float(distance_m.max()) / edge_m
 
 
