@@ -7,6 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pipeline.mesh_repair import (
+    _first_of_each_corner_set,
     drop_small_components,
     edge_table,
     face_areas,
@@ -134,3 +135,14 @@ def test_long_edges_at_the_boundary_are_split_and_the_surface_kept(
     np.testing.assert_allclose(area_vector, np.cross(v[f[:, 1]] - v[f[:, 0]],
                                                      v[f[:, 2]] - v[f[:, 0]]).sum(axis=0),
                                atol=1e-9)
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), faces=st.integers(1, 200), vertices=st.integers(3, 12))
+def test_duplicates_are_found_whatever_the_corners_order(seed: int, faces: int,
+                                                         vertices: int) -> None:
+    """The first face of each set with the same corners, as np.unique over sorted rows finds
+    it: few vertices, so many faces repeat, with their corners turned or flipped."""
+    f = np.random.default_rng(seed).integers(0, vertices, (faces, 3))
+    _, expected = np.unique(np.sort(f, axis=1), axis=0, return_index=True)
+    assert np.array_equal(_first_of_each_corner_set(f), np.sort(expected))
