@@ -117,14 +117,17 @@ def view_steps(
     steps = np.zeros((views.count, len(v)))
     weights = np.zeros((views.count, len(v)))
     for k in range(views.count):
-        cos = -normals @ views.forwards[k]
-        cols, rows = pix[k, :, 0], pix[k, :, 1]
-        inside = (cols >= 0) & (cols <= res - 1) & (rows >= 0) & (rows <= res - 1)
+        cos_all = -normals @ views.forwards[k]
+        cols_all, rows_all = pix[k, :, 0], pix[k, :, 1]
+        # Only vertices inside the view and facing it can be seen: the lookups run on them
+        # alone (about half of beetle's 258 k vertices a view).
+        at = np.flatnonzero((cols_all >= 0) & (cols_all <= res - 1) & (rows_all >= 0)
+                            & (rows_all <= res - 1) & (cos_all > config.min_cos))
+        cos, cols, rows = cos_all[at], cols_all[at], rows_all[at]
         seen_depth, seen_ok = _bilinear(renders.depth_n[k], renders.valid[k], cols, rows)
         tan = np.sqrt(np.maximum(1.0 - cos**2, 0.0)) / np.maximum(cos, 1e-3)
         tol = config.tolerance_px * (1.0 + tan) / res
-        visible = inside & seen_ok & (cos > config.min_cos)
-        visible &= np.abs(seen_depth - depth_n[k]) < tol
+        visible = seen_ok & (np.abs(seen_depth - depth_n[k, at]) < tol)
         target, target_ok = _bilinear(
             enhanced_depth_n[k], renders.valid[k], cols, rows, max_spread=3.0 * tol
         )
@@ -132,11 +135,11 @@ def view_steps(
             change = enhanced_depth_n[k] - renders.depth_n[k]
             step = _bilinear(change, renders.valid[k], cols, rows)[0] * views.depth_range_m
         else:
-            step = (target - depth_n[k]) * views.depth_range_m
+            step = (target - depth_n[k, at]) * views.depth_range_m
         # A step beyond the cap means the lookup landed on another surface: not this view's.
         visible &= target_ok & (np.abs(step) < cap)
-        steps[k] = np.where(visible, step, 0.0)
-        weights[k] = np.where(visible, cos**2, 0.0)
+        steps[k, at] = np.where(visible, step, 0.0)
+        weights[k, at] = np.where(visible, cos**2, 0.0)
     return ViewSteps(steps, weights, np.asarray(views.forwards, np.float64), normals, cap,
                      mean_op)
 
