@@ -60,8 +60,8 @@ def vertex_normals(
 def mean_edge_length_m(mesh: TriangleMesh) -> float:
     """Mean length of the faces' edges (an interior edge counted once per face), metres."""
     corners = [mesh.vertices_m[mesh.faces[:, c]] for c in range(3)]
-    # Each corner gathered once and the lengths summed as einsum: half the time of gathering
-    # both ends of every edge (0.31 -> 0.18 s on beetle's 510 k faces), the same sum.
-    lengths_m = [np.sqrt(np.einsum("fi,fi->f", a - b, a - b))
+    # Each corner gathered once, rather than both ends of every edge: the same lengths in
+    # the same order, so the same mean bit for bit.
+    lengths_m = [np.linalg.norm(a - b, axis=1)
                  for a, b in zip(corners, corners[1:] + corners[:1], strict=True)]
     return float(np.concatenate(lengths_m).mean())

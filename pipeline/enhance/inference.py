@@ -171,13 +171,14 @@ in chunks of 64 k rows, 1.1 s of 8 k, 1.0 s of 4 k."""
 
 
 def by_row_chunks(model, rows: NDArray[np.float32]) -> NDArray[np.float32]:
-    """(V, K) a per-row network's outputs for (V, F) rows, `ROW_CHUNK` rows at a time."""
+    """(V, ...) a per-row network's outputs for (V, F) rows, `ROW_CHUNK` rows at a time
+    (no rows: one empty chunk)."""
     import torch
 
     with torch.no_grad():
         rows_t = torch.from_numpy(rows)
         return torch.cat([model(rows_t[i:i + ROW_CHUNK])
-                          for i in range(0, len(rows), ROW_CHUNK)]).numpy()
+                          for i in range(0, max(len(rows), 1), ROW_CHUNK)]).numpy()
 
 
 def vertex_gains(model, features: NDArray[np.float32]) -> NDArray[np.float64]:

@@ -68,8 +68,8 @@ class FieldOps:
 
     step: Callable[[Any], Any]
     """y + lam (M y - y - c), lam = 0.5, with M the mean operator and c a fixed offset per
-    vertex in each whole (x, y, z) triple of columns (none in a trailing column); float64
-    (positions)."""
+    vertex in each whole (x, y, z) triple of columns: positions (V, 3) take it, a (V, 1)
+    field (the noise probe) has no whole triple and none; float64."""
     average: Callable[[Any], Any]
     """M y, float32: it serves only the features, which the selector reads in float32, and
     the averages of a 294 k-vertex mesh's 30 feature columns take 0.04 s a pass against
@@ -147,16 +147,18 @@ def twicing_candidates(
     ops = field_ops(m, device, offset_m)
     x = mesh.vertices_m
     # Every field below is a polynomial in the smoothing step applied to x, the pilot's
-    # twicings included (`_power_sums`), so x alone is stepped, once.
+    # twicings included (`_step_polynomials`), so one run of steps on x gives them all.
     pilot_polynomial = _twicing_polynomial(config.pilot_iterations, config.passes)
     twicings = [_twicing_polynomial(k, config.passes) for k in config.iterations]
-    pilot_field, *sums = _power_sums(
-        ops.step, ops.to_field(x),
-        [pilot_polynomial, *twicings, *(_product(t, pilot_polynomial) for t in twicings)])
-    pilot = ops.to_numpy(pilot_field)
-    # A fixed probe: the result depends on the mesh alone.
+    pilot_twicings = [_product(t, pilot_polynomial) for t in twicings]
+    fields = _step_polynomials(ops.step, ops.to_field(x),
+                               [pilot_polynomial, *twicings, *pilot_twicings])
+    pilot = ops.to_numpy(fields[0])
+    candidate_fields = fields[1:1 + len(twicings)]
+    pilot_twiced_fields = fields[1 + len(twicings):]
+    # A fixed probe, stepped on its own: the result depends on the mesh alone.
     probe = np.random.default_rng(0).normal(size=(len(x), 1))
-    (probe_pilot,) = _power_sums(ops.step, ops.to_field(probe), [pilot_polynomial])
+    (probe_pilot,) = _step_polynomials(ops.step, ops.to_field(probe), [pilot_polynomial])
     normals = vertex_normals(pilot, mesh.faces).astype(np.float64)
     residual = np.sum((x - pilot) * normals, axis=1)
     # The residual's variance is the noise's times the share the pilot removes of it.
@@ -167,8 +169,8 @@ def twicing_candidates(
         np.sum((m @ pilot - pilot) * normals, axis=1) / noise_std_m,
     ]
     columns.append(np.abs(columns[-1]))
-    candidates = [ops.to_numpy(c) for c in sums[: len(twicings)]]
-    for candidate, pilot_twiced in zip(candidates, map(ops.to_numpy, sums[len(twicings):]),
+    candidates = [ops.to_numpy(c) for c in candidate_fields]
+    for candidate, pilot_twiced in zip(candidates, map(ops.to_numpy, pilot_twiced_fields),
                                        strict=True):
         pilot_move = np.sum((pilot_twiced - pilot) * normals, axis=1) / noise_std_m
         from_pilot = np.sum((candidate - pilot) * normals, axis=1) / noise_std_m
@@ -183,8 +185,11 @@ def twicing_candidates(
 def _twicing_polynomial(count: int, passes: int) -> dict[int, int]:
     """`passes` passes of `count` smoothing steps, I - (I - L^count)^passes, as its
     coefficients {power: coefficient} (binomial expansion): `twice_field(m, x, count,
-    passes, 0.5)` is that sum of powers of L applied to x."""
-    return {j * count: (-1) ** (j + 1) * comb(passes, j) for j in range(1, passes + 1)}
+    passes, 0.5)` is that sum of powers of L applied to x (count 0: {0: 1}, x itself)."""
+    out: dict[int, int] = {}
+    for j in range(1, passes + 1):
+        out[j * count] = out.get(j * count, 0) + (-1) ** (j + 1) * comb(passes, j)
+    return out
 
 
 def _product(p: dict[int, int], q: dict[int, int]) -> dict[int, int]:
@@ -196,9 +201,10 @@ def _product(p: dict[int, int], q: dict[int, int]) -> dict[int, int]:
     return out
 
 
-def _power_sums(step: Callable[[Any], Any], x, polynomials: list[dict[int, int]]) -> list:
-    """Σ_n c_n A^n x for each polynomial {n: c_n} (n >= 1), A one `step`, from one run of
-    as many steps as the highest power.
+def _step_polynomials(step: Callable[[Any], Any], x, polynomials: list[dict[int, int]]
+                      ) -> list:
+    """p(A) x = Σ_n c_n A^n x for each polynomial p = {n: c_n}, A one `step`, from one run
+    of as many steps as the highest power.
 
     Where steps leave out a boundary offset c (`field_ops`), a step is affine, A y = L y -
     c / 2. The polynomials here have coefficients that sum to 1 (twicings, and their
@@ -215,8 +221,9 @@ def _power_sums(step: Callable[[Any], Any], x, polynomials: list[dict[int, int]]
             terms.setdefault(n, []).append((i, c))
     sums: list[Any] = [0] * len(polynomials)
     y = x
-    for n in range(1, max(terms) + 1):
-        y = step(y)
+    for n in range(max(terms) + 1):
+        if n > 0:
+            y = step(y)
         for i, c in terms.get(n, ()):
             sums[i] = sums[i] + c * y
     return sums

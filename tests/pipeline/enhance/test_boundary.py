@@ -8,8 +8,8 @@ from pipeline.enhance.boundary import across_boundary, boundary_half_edges, boun
 from pipeline.enhance.data import noisy_along_normals
 from pipeline.enhance.twicing_blend import (
     TwicingBlendConfig,
-    _power_sums,
     _product,
+    _step_polynomials,
     _twicing_polynomial,
     field_ops,
     twicing_candidates,
@@ -139,8 +139,8 @@ def test_a_twicing_of_the_pilot_is_the_product_polynomial_of_the_offset_steps(n,
     m = mean_operator(mesh.faces, mesh.vertex_count)
     ops = field_ops(m, None, _offset(mesh))
     p, t = _twicing_polynomial(pilot, 2), _twicing_polynomial(k, 2)
-    (pilot_m,) = _power_sums(ops.step, mesh.vertices_m, [p])
-    (stepped,) = _power_sums(ops.step, pilot_m, [t])
-    (at_once,) = _power_sums(ops.step, mesh.vertices_m, [_product(t, p)])
+    (pilot_m,) = _step_polynomials(ops.step, mesh.vertices_m, [p])
+    (stepped,) = _step_polynomials(ops.step, pilot_m, [t])
+    (at_once,) = _step_polynomials(ops.step, mesh.vertices_m, [_product(t, p)])
     assert np.allclose(at_once, stepped, rtol=0, atol=1e-12)
     assert not np.allclose(pilot_m, mesh.vertices_m, rtol=0, atol=1e-6)

@@ -5,7 +5,12 @@ from hypothesis import strategies as st
 
 from pipeline.enhance.baselines import twicing_smooth
 from pipeline.enhance.data import noisy_along_normals
-from pipeline.enhance.twicing_blend import TwicingBlendConfig, blend, twicing_candidates
+from pipeline.enhance.twicing_blend import (
+    TwicingBlendConfig,
+    _twicing_polynomial,
+    blend,
+    twicing_candidates,
+)
 from tests.pipeline.enhance.conftest import sphere
 
 SMALL = TwicingBlendConfig(iterations=(2, 5, 10), pilot_iterations=5, feature_rings=(0, 3))
@@ -83,3 +88,13 @@ def test_cuda_steps_give_the_scipy_candidates():
     host, gpu = twicing_candidates(mesh, SMALL), twicing_candidates(mesh, SMALL, "cuda")
     assert np.allclose(gpu.vertices_m, host.vertices_m, rtol=0, atol=1e-12)
     assert np.allclose(gpu.features, host.features, rtol=1e-5, atol=1e-5)
+
+
+def test_a_count_of_zero_is_the_mesh_itself():
+    """No steps twiced is the identity (both passes' terms fall on the power 0)."""
+    assert _twicing_polynomial(0, 2) == {0: 1}
+    mesh = _noisy_sphere()
+    c = twicing_candidates(mesh, TwicingBlendConfig(iterations=(0, 5), pilot_iterations=3,
+                                                    feature_rings=(0,)))
+    assert np.array_equal(c.vertices_m[0], mesh.vertices_m)
+    assert np.allclose(c.vertices_m[1], twicing_smooth(mesh, 5, 2).vertices_m)
