@@ -127,40 +127,30 @@ def _boundary_split_kernel(vertices_m: FloatArray, faces: Faces, edge_m: float,
 
 
 def _child_main() -> None:
-    """Child process body (``python -m pipeline.remesh``): arrays in on stdin as .npz (the
-    mesh repaired first where a `min_component_share` comes with them), the remeshed arrays
-    out on stdout as .npz; any failure exits non-zero."""
+    """Child process body (``python -m pipeline.remesh``): arrays in on stdin as .npz,
+    the remeshed arrays out on stdout as .npz; any failure exits non-zero."""
     with np.load(io.BytesIO(sys.stdin.buffer.read()), allow_pickle=False) as data:
-        vertices, faces = data["vertices_m"], data["faces"]
-        if "min_component_share" in data:
-            vertices, faces, _ = repair(vertices, faces, float(data["min_component_share"]))
-        vertices, faces = _boundary_split_kernel(vertices, faces, float(data["edge_m"]),
-                                                 int(data["iterations"]))
+        vertices, faces = _boundary_split_kernel(data["vertices_m"], data["faces"],
+                                                 float(data["edge_m"]), int(data["iterations"]))
     out = io.BytesIO()
     np.savez(out, vertices_m=vertices, faces=faces)
     sys.stdout.buffer.write(out.getvalue())
 
 
 def start_isolated(vertices_m: FloatArray, faces: Faces, edge_m: float, iterations: int,
-                   timeout_s: float, min_component_share: float | None = None
-                   ) -> Callable[[], KernelOutcome]:
+                   timeout_s: float) -> Callable[[], KernelOutcome]:
     """Starts the kernel, after the boundary split (`_boundary_split_kernel`), in a child
     interpreter and returns a call that waits for it: (result, None), or (None, why it
-    failed). The caller may work meanwhile. With a `min_component_share` the child
-    `repair`s the mesh first, as the caller may be doing at the same time: the child need
-    not wait for it.
+    failed). The caller may work meanwhile.
 
     A plain child process rather than multiprocessing: it never re-imports the caller's
     main module, so it works from any script, worker or test runner. A thread feeds and
     drains its pipes, so neither side blocks on a full pipe while the caller works.
     """
     request = io.BytesIO()
-    arrays: dict[str, Any] = {
-        "vertices_m": np.asarray(vertices_m, np.float64), "faces": np.asarray(faces, np.int32),
-        "edge_m": np.float64(edge_m), "iterations": np.int64(iterations)}
-    if min_component_share is not None:
-        arrays["min_component_share"] = np.float64(min_component_share)
-    np.savez(request, **arrays)
+    np.savez(request, vertices_m=np.asarray(vertices_m, np.float64),
+             faces=np.asarray(faces, np.int32), edge_m=np.float64(edge_m),
+             iterations=np.int64(iterations))
     package_root = str(Path(__file__).resolve().parents[1])
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join(p for p in (package_root, env.get("PYTHONPATH")) if p)
@@ -189,10 +179,9 @@ def start_isolated(vertices_m: FloatArray, faces: Faces, edge_m: float, iteratio
 
 
 def run_isolated(vertices_m: FloatArray, faces: Faces, edge_m: float, iterations: int,
-                 timeout_s: float, min_component_share: float | None = None) -> KernelOutcome:
+                 timeout_s: float) -> KernelOutcome:
     """The kernel in a child interpreter (`start_isolated`), waited for."""
-    return start_isolated(vertices_m, faces, edge_m, iterations, timeout_s,
-                          min_component_share)()
+    return start_isolated(vertices_m, faces, edge_m, iterations, timeout_s)()
 
 
 def _read_outcome(returncode: int, stdout: bytes, stderr: bytes) -> KernelOutcome:
@@ -236,12 +225,6 @@ def remesh(mesh: TriangleMesh, config: RemeshConfig) -> tuple[TriangleMesh, dict
     runs: that is the answer wherever the kernel is dropped or fails, so choosing costs no
     second clean-up after the kernel's.
     """
-    wait = None
-    if config.iterations > 0 and config.isolate:
-        # The child repairs the mesh too, beside this process rather than after it (beetle's
-        # update: 0.7 s of a 6.8 s light remesh).
-        wait = start_isolated(mesh.vertices_m, mesh.faces, config.target_edge_length_m,
-                              config.iterations, config.timeout_s, config.min_component_share)
     vertices, faces, removed = repair(mesh.vertices_m, mesh.faces, config.min_component_share)
     if len(faces) == 0:
         raise ValueError("mesh: nothing left to remesh after repair (degenerate input)")
@@ -251,7 +234,9 @@ def remesh(mesh: TriangleMesh, config: RemeshConfig) -> tuple[TriangleMesh, dict
     judged = (config.max_kernel_added_outside is not None
               or config.max_kernel_lost_edges is not None)
     input_cleaned = None
-    if wait is not None:
+    if config.isolate:
+        wait = start_isolated(vertices, faces, config.target_edge_length_m, config.iterations,
+                              config.timeout_s)
         if judged:
             input_cleaned = _cleaned_up(vertices, faces, config, dict(stats))
         result, warning = wait()

@@ -66,23 +66,6 @@ def test_a_kernel_error_keeps_the_input_and_warns() -> None:
     assert result is None and warning is not None and "non-manifold" in warning
 
 
-def test_the_child_repairs_what_it_is_given_where_asked() -> None:
-    """`remesh` hands the child the mesh as it came, and the repair's share, so the child
-    need not wait for the caller's repair: given a face on an edge two faces already use,
-    the child repairs it away and remeshes, and without the share the kernel refuses it."""
-    sphere = _bumpy_sphere()
-    a, b = sphere.faces[0, :2]
-    v = np.vstack([sphere.vertices_m, [[0.0, 0.0, 0.0]]])
-    f = np.vstack([sphere.faces, [[a, b, len(v) - 1]]]).astype(np.int32)
-    result, warning = run_isolated(v, f, 0.05, 1, 60.0, min_component_share=0.0)
-    assert warning is None and result is not None
-    assert len(result[1]) > 0
-    _, opposite = edge_table(result[1])
-    assert np.bincount(opposite.ravel()).max() <= 2
-    result, warning = run_isolated(v, f, 0.05, 1, 60.0)
-    assert result is None and "non-manifold" in warning
-
-
 def test_a_timeout_keeps_the_input_and_warns() -> None:
     source = _bumpy_sphere()
     out, stats = remesh(source, RemeshConfig(target_edge_length_m=0.003, iterations=50,
