@@ -19,7 +19,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from pipeline.mesh import face_normals
-from pipeline.mesh_repair import compact, edge_table, faces_per_edge, triangle_angles_deg
+from pipeline.mesh_repair import (
+    compact,
+    edge_table,
+    faces_at,
+    faces_per_edge,
+    triangle_angles_deg,
+)
 
 FloatArray = NDArray[np.float64]
 Faces = NDArray[np.int32]
@@ -54,7 +60,7 @@ def _near_edge_table(faces: Faces, cand_face: NDArray[np.int64], vertex_count: i
     were 1.2 s of a 2.7 s clean-up; an operation has a few hundred candidates."""
     at = np.zeros(vertex_count, dtype=bool)
     at[faces[cand_face].ravel()] = True
-    near = np.flatnonzero(at[faces[:, 0]] | at[faces[:, 1]] | at[faces[:, 2]])
+    near = np.flatnonzero(faces_at(faces, at))
     edges, opposite = edge_table(faces[near])
     return near, edges, opposite, np.searchsorted(near, cand_face)
 
@@ -175,7 +181,7 @@ def _turned(vertices_m: FloatArray, faces: Faces, new_pos: FloatArray, new_faces
     (or leave degenerate): only faces at a or b can change, so only they are measured."""
     at_ends = np.zeros(len(vertices_m), dtype=bool)
     at_ends[a] = at_ends[b] = True
-    near = np.nonzero(at_ends[faces[:, 0]] | at_ends[faces[:, 1]] | at_ends[faces[:, 2]])[0]
+    near = np.nonzero(faces_at(faces, at_ends))[0]
     before = face_normals(vertices_m, faces[near])
     after = face_normals(new_pos, new_faces[near])
     turned = np.zeros(len(faces), dtype=bool)

@@ -51,6 +51,12 @@ def edge_table(faces: Faces) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
     return np.column_stack([low[kept], high[kept]]), inverse.reshape(3, -1).T
 
 
+def faces_at(faces: Faces, at_vertex: NDArray[np.bool_]) -> NDArray[np.bool_]:
+    """(F,) the faces with a corner where (V,) `at_vertex` is set: three column gathers, a
+    third of the time of a reduction over (F, 3) gathered rows."""
+    return at_vertex[faces[:, 0]] | at_vertex[faces[:, 1]] | at_vertex[faces[:, 2]]
+
+
 def faces_per_edge(opposite: NDArray[np.int64], edge_count: int) -> NDArray[np.int64]:
     """(E,) how many faces use each edge, from `edge_table`'s (F, 3) opposite-edge table:
     1 on the boundary, 2 inside, more where the mesh is non-manifold."""
@@ -146,11 +152,11 @@ def repair(vertices_m: FloatArray, faces: Faces, min_component_share: float = 0.
     removed["duplicate"] = len(faces) - len(first)
     faces = faces[first]
     for _ in range(rounds):
-        edges, opposite = edge_table(faces.astype(np.int32))
+        faces32 = faces.astype(np.int32)
+        edges, opposite = edge_table(faces32)
         uses = faces_per_edge(opposite, len(edges))
         bad_face = (uses[opposite] > 2).any(axis=1)
-        bad_vertex = non_manifold_vertices(faces.astype(np.int32), len(vertices), edges)
-        bad_face |= bad_vertex[faces].any(axis=1)
+        bad_face |= faces_at(faces, non_manifold_vertices(faces32, len(vertices), edges))
         if not bad_face.any():
             break
         removed["non_manifold"] += int(bad_face.sum())

@@ -11,6 +11,7 @@ from numpy.typing import NDArray
 from pipeline.enhance.baselines import mean_operator
 from pipeline.enhance.render import DepthRenders, project
 from pipeline.mesh import TriangleMesh, face_normals, vertex_normals
+from pipeline.mesh_repair import faces_at
 
 
 @dataclass(frozen=True)
@@ -200,7 +201,7 @@ def unfolded(before_m: NDArray, after_m: NDArray, faces: NDArray[np.int32]) -> N
         out[corners] = before_m[corners]
         put_back = np.zeros(len(out), dtype=bool)
         put_back[corners] = True
-        check = np.nonzero(put_back[faces].any(axis=1))[0]
+        check = np.nonzero(faces_at(faces, put_back))[0]
     return out
 
 
