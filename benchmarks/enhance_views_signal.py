@@ -68,19 +68,26 @@ def mesh_signal(meshes: Path, name: str) -> dict:
                                    replace(config, method=method, correction_gain=1.0))
         err_mm = (enhanced - clean.depth_n)[same] * range_m * 1e3
         steps = view_steps(inputs.base, base, enhanced, inputs.update)
-        along, seen = steps.along_normals_m(), steps.weights > 0
-        gains = [float(np.sum(a[s] * to_truth_m[s]) / np.sum(a[s] ** 2))
-                 for a, s in zip(along, seen, strict=True)]
-        cov = var = 0.0
-        for i in range(len(along)):
-            for j in range(i + 1, len(along)):
-                both = seen[i] & seen[j]
-                cov += float(np.sum(along[i][both] * along[j][both]))
-                var += 0.5 * float(np.sum(along[i][both] ** 2) + np.sum(along[j][both] ** 2))
         out[method] = {"depth_rms_mm": rms(err_mm), "depth_rms_cos_weighted_mm": rms(err_mm * cos),
-                       "per_view_signal_gain": [round(g, 3) for g in gains],
-                       "cross_view_share": round(cov / var, 3)}
+                       **view_signal(steps.along_normals_m(), steps.weights > 0, to_truth_m)}
     return out
+
+
+def view_signal(along_m: np.ndarray, seen: np.ndarray, to_truth_m: np.ndarray) -> dict:
+    """Per view, the least-squares gain of its (K, V) steps along the normal `along_m` onto the
+    (V,) move that puts each vertex on the truth, where it sees the vertex (`seen`, (K, V)); and
+    the views' summed pairwise covariance over their variance at the vertices both see."""
+    gains = [float(np.sum(a[s] * to_truth_m[s]) / np.sum(a[s] ** 2))
+             for a, s in zip(along_m, seen, strict=True)]
+    cov = var = 0.0
+    for i in range(len(along_m)):
+        for j in range(i + 1, len(along_m)):
+            both = seen[i] & seen[j]
+            a, b = along_m[i][both], along_m[j][both]
+            cov += float(np.sum(a * b))
+            var += 0.5 * float(np.sum(a**2) + np.sum(b**2))
+    return {"per_view_signal_gain": [round(g, 3) for g in gains],
+            "cross_view_share": round(cov / var, 3)}
 
 
 def main() -> None:
