@@ -32,6 +32,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from pipeline.enhance import EnhanceConfig, enhance_mesh  # noqa: E402
+from pipeline.enhance.bounded_noise import BoundedNoiseConfig  # noqa: E402
 from pipeline.enhance.config import STAGE_PROGRESS, light_remesh  # noqa: E402
 from pipeline.enhance.data import DataConfig, noisy_along_normals  # noqa: E402
 from pipeline.enhance.metrics import c2m_summary, normal_error_deg  # noqa: E402
@@ -56,6 +57,7 @@ ISSUE_CLASSICAL = ("taubin", "laplacian", "bilateral")
 
 
 NO_NORMAL_FILTER = NormalFilterConfig(normal_iterations=0)
+NO_BOUNDED_NOISE = BoundedNoiseConfig(rings=0)
 
 NORMAL_FILTER_GRID = ((10, 30, 2.0, 2.0), (10, 40, 1.5, 2.0), (10, 40, 1.0, 2.0),
                       (15, 40, 1.5, 2.0), (20, 40, 1.0, 2.0), (20, 40, 0.7, 2.0))
@@ -127,6 +129,17 @@ def selector_same_ending(noisy, truth, base: EnhanceConfig) -> dict:
     if base.remesh_iterations > 0:
         result = light_remesh(result, base.remesh_iterations)
     return score(result, truth, time.perf_counter() - t)
+
+
+def twicing_bounded_noise(noisy, truth, iterations: int) -> dict:
+    """Twicing at `iterations` ended by the bounded-noise refinement: the same trick as the
+    enhance stage's pre-smoothing on a classical smoother, with no trained part."""
+    from pipeline.enhance.baselines import twicing_smooth
+    from pipeline.enhance.bounded_noise import BoundedNoiseConfig, bounded_noise_refine
+
+    t = time.perf_counter()
+    result = bounded_noise_refine(noisy, twicing_smooth(noisy, iterations), BoundedNoiseConfig())
+    return score(result, truth, time.perf_counter() - t) | {"iterations": iterations}
 
 
 def run_method(noisy, truth, config: EnhanceConfig) -> dict:
@@ -347,6 +360,12 @@ def main() -> None:
     # The trained selector's blend of twicings alone: the networks' pre-smoothing.
     methods["selector"] = run_method(noisy, truth, replace(base, method="selector"))
     methods["selector_same_ending"] = selector_same_ending(noisy, truth, base)
+    # The pre-smoothing before the bounded-noise refinement (fifteenth session and before),
+    # and the refinement on plain twicing at its best count.
+    methods["selector_without_bounded_noise"] = run_method(
+        noisy, truth, replace(base, method="selector", bounded_noise=NO_BOUNDED_NOISE))
+    methods["twicing_bounded_noise"] = twicing_bounded_noise(
+        noisy, truth, methods["twicing"]["iterations"])
     methods["views_raw_depth"] = run_method(noisy, truth, replace(base, method="views"))
     methods["bilateral_normal_filtering"] = best_normal_filtering(noisy, truth)
     for label, cfg in (
@@ -370,6 +389,11 @@ def main() -> None:
                                                  normal_filter=NO_NORMAL_FILTER)),
         ("regressor_no_normal_filter", replace(base, method="regressor",
                                                normal_filter=NO_NORMAL_FILTER)),
+        # The pipeline as it was before the bounded-noise refinement.
+        ("ldm_4_steps_without_bounded_noise", replace(base, method="ldm", steps=4,
+                                                      bounded_noise=NO_BOUNDED_NOISE)),
+        ("regressor_without_bounded_noise", replace(base, method="regressor",
+                                                    bounded_noise=NO_BOUNDED_NOISE)),
     ):
         try:
             run_method(noisy, truth, replace(cfg, resolution=32))  # warm-up (imports, loading)
@@ -431,6 +455,10 @@ def targets(methods: dict, perf: dict) -> dict:
             # The networks alone: the same pre-smoothing and the same ending without them.
             out[label]["rms_gain_over_selector_same_ending"] = round(
                 1.0 - r["c2m_rms_mm"] / methods["selector_same_ending"]["c2m_rms_mm"], 4)
+        if "twicing_bounded_noise" in methods:
+            # The refinement on a classical smoother: what the trained parts add to it.
+            out[label]["rms_gain_over_twicing_bounded_noise"] = round(
+                1.0 - r["c2m_rms_mm"] / methods["twicing_bounded_noise"]["c2m_rms_mm"], 4)
         if "bilateral_normal_filtering" in methods:
             # Not among the issue's baselines, and stronger than they are: said beside them.
             out[label]["rms_gain_over_bilateral_normal_filtering"] = round(

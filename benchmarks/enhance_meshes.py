@@ -28,6 +28,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from enhance import (  # noqa: E402
+    NO_BOUNDED_NOISE,
     NO_NORMAL_FILTER,
     SWEEPS,
     _weights,
@@ -38,6 +39,7 @@ from enhance import (  # noqa: E402
     score,
     selector_same_ending,
     targets,
+    twicing_bounded_noise,
 )
 
 from app.cli.train_data import VALIDATION_MESHES  # noqa: E402
@@ -63,6 +65,8 @@ def mesh_report(meshes: Path, name: str, weights: dict | None) -> dict:
     methods["adaptive_twicing"] = run_method(noisy, truth, EnhanceConfig(method="adaptive"))
     methods["bilateral_normal_filtering"] = best_normal_filtering(noisy, truth)
     methods["selector_same_ending"] = selector_same_ending(noisy, truth, base)
+    methods["twicing_bounded_noise"] = twicing_bounded_noise(
+        noisy, truth, methods["twicing"]["iterations"])
     del methods["bilateral_normal_filtering"]["rms_by_setting_mm"]
     for label, cfg in (
         ("selector", replace(base, method="selector")),
@@ -71,6 +75,10 @@ def mesh_report(meshes: Path, name: str, weights: dict | None) -> dict:
         ("ldm_4_steps_no_remesh", replace(base, method="ldm", steps=4, remesh_iterations=0)),
         ("ldm_4_steps_no_normal_filter", replace(base, method="ldm", steps=4,
                                                  normal_filter=NO_NORMAL_FILTER)),
+        ("selector_without_bounded_noise", replace(base, method="selector",
+                                                   bounded_noise=NO_BOUNDED_NOISE)),
+        ("ldm_4_steps_without_bounded_noise", replace(base, method="ldm", steps=4,
+                                                      bounded_noise=NO_BOUNDED_NOISE)),
     ):
         methods[label] = run_method(noisy, truth, cfg)
     found = targets(methods, {})

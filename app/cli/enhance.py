@@ -8,6 +8,7 @@ from typing import Annotated
 import typer
 
 from app.cli import app
+from pipeline.enhance.bounded_noise import BoundedNoiseConfig
 from pipeline.enhance.normal_filter import NormalFilterConfig
 
 
@@ -64,6 +65,14 @@ def enhance_mesh_command(
             "--presmooth 0 still turns it off, and its passes and pilot are the weights').",
         ),
     ] = True,
+    bounded_rings: Annotated[
+        int,
+        typer.Option(
+            "--bounded-rings",
+            help="Rings of neighbours whose residual range ends the pre-smoothing where the "
+            "noise is bounded (light-tailed); 0: off.",
+        ),
+    ] = BoundedNoiseConfig.rings,
     gain: Annotated[
         float | None,
         typer.Option("--gain", help="Follow this fixed share (0, 2] of the networks' depth "
@@ -128,6 +137,7 @@ def enhance_mesh_command(
         presmooth_passes=presmooth_passes,
         presmooth_adaptive=adaptive,
         presmooth_learned=learned,
+        bounded_noise=BoundedNoiseConfig(rings=bounded_rings),
         correction_gain=EnhanceConfig.correction_gain if gain is None else gain,
         learned_gain=gain is None,
         min_noise_ratio=min_noise_ratio,

@@ -8,6 +8,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numpy.typing import NDArray
 
+from pipeline.enhance.bounded_noise import BoundedNoiseConfig, bounded_noise_refine
 from pipeline.enhance.noise_level import noise_to_edge_ratio
 from pipeline.enhance.normal_filter import NormalFilterConfig, normal_filter
 from pipeline.enhance.render import DepthRenders, make_views, render_depth, view_directions
@@ -65,6 +66,10 @@ class EnhanceConfig:
     """The pre-smoothing is the selector's blend of twicings (`learned_twicing`, the
     `selector` weights; its candidates and pilot are fixed by those weights), in place of
     `presmooth_adaptive`'s choice; `presmooth_iterations` 0 still turns pre-smoothing off."""
+    bounded_noise: BoundedNoiseConfig = field(default_factory=BoundedNoiseConfig)
+    """The pre-smoothing (ldm, regressor, selector) ends by moving each vertex to the middle of
+    its neighbourhood's residual range where the noise is bounded (`bounded_noise.py`; rings
+    0: off)."""
     correction_gain: float = 0.7
     """Share of the networks' depth correction (enhanced minus base depth) the update
     follows, every vertex alike, when `learned_gain` is off. Chosen on the validation meshes
@@ -137,6 +142,10 @@ def validate_config(config: EnhanceConfig) -> None:
         )
     if config.presmooth_passes < 1:
         raise ValueError(f"presmooth_passes must be >= 1, got {config.presmooth_passes}")
+    if config.bounded_noise.rings < 0 or config.bounded_noise.smoothing < 0:
+        raise ValueError(
+            f"bounded_noise: rings and smoothing must be >= 0, got {config.bounded_noise.rings}"
+            f" and {config.bounded_noise.smoothing}")
     if config.remesh_iterations < 0:
         raise ValueError(f"remesh_iterations must be >= 0, got {config.remesh_iterations}")
 
@@ -169,7 +178,9 @@ def enhance_mesh(
 
     device = resolve_device(config.device).type
     if config.method == "selector":
-        return learned_twicing(mesh, model_bytes(config, "selector"), device)
+        return bounded_noise_refine(
+            mesh, learned_twicing(mesh, model_bytes(config, "selector"), device),
+            config.bounded_noise)
 
     def done(stage: str) -> None:
         if progress is not None:
@@ -229,7 +240,7 @@ def update_inputs(
     if config.method != "views" and config.presmooth_iterations > 0:
         selector = model_bytes(config, "selector") if config.presmooth_learned else None
         base = presmoothed(mesh, config.presmooth_iterations, config.presmooth_passes,
-                           config.presmooth_adaptive, selector, device)
+                           config.presmooth_adaptive, selector, device, config.bounded_noise)
         base_renders = render_depth(base, views, with_color=False)
         update = replace(update, unseen_follow_moves=True)
     if config.method != "views":

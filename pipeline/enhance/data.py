@@ -64,6 +64,10 @@ class DataConfig:
     """The shipped selector's blend of twicings instead (`learned_twicing`), as the enhance
     stage does (`EnhanceConfig.presmooth_learned`). The shipped regressor was trained with it
     off (adaptive twicing); the LDM refining it was fine-tuned with it on."""
+    presmooth_bounded: bool = True
+    """The pre-smoothing ends with `bounded_noise_refine` (default settings), as the enhance
+    stage's does (`EnhanceConfig.bounded_noise`). The shipped depth networks were trained
+    before it, on the selector's blend alone."""
     color_probability: float = 0.5
     """Chance a pose's mesh gets synthetic colour (`synthetic_colors`), whose Canny edges the
     networks then read as at inference on a coloured mesh; the other poses have none (edges
@@ -348,12 +352,14 @@ def pose_pairs(
 
 def _presmoothed(noisy: TriangleMesh, config: DataConfig) -> TriangleMesh:
     """The mesh whose render is the networks' base depth, smoothed as `config` says."""
+    from pipeline.enhance.bounded_noise import BoundedNoiseConfig
     from pipeline.enhance.inference import presmoothed
     from pipeline.enhance.weights import shipped_bytes
 
     selector = shipped_bytes("selector") if config.presmooth_learned else None
+    bounded = BoundedNoiseConfig() if config.presmooth_bounded else None
     return presmoothed(noisy, config.presmooth_iterations, config.presmooth_passes,
-                       config.presmooth_adaptive, selector)
+                       config.presmooth_adaptive, selector, bounded=bounded)
 
 
 SAME_SURFACE_N = 0.05

@@ -14,6 +14,7 @@ from pipeline.mesh import TriangleMesh
 if TYPE_CHECKING:
     import torch
 
+    from pipeline.enhance.bounded_noise import BoundedNoiseConfig
     from pipeline.enhance.config import EnhanceConfig
     from pipeline.enhance.twicing_blend import TwicingCandidates
 
@@ -210,16 +211,22 @@ def selector_blend(model, candidates: TwicingCandidates) -> NDArray[np.float64]:
 
 def presmoothed(
     mesh: TriangleMesh, iterations: int, passes: int, adaptive: bool, selector: bytes | None,
-    device: str | None = None,
+    device: str | None = None, bounded: BoundedNoiseConfig | None = None,
 ) -> TriangleMesh:
     """The networks' pre-smoothing, for inference and training pairs alike: the selector's
-    blend when its bytes are given (its smoothing on `device`), else `baselines.presmooth`;
-    0 iterations: the mesh."""
+    blend when its bytes are given (its smoothing on `device`), else `baselines.presmooth`,
+    then `bounded`'s refinement where given (`bounded_noise_refine`); 0 iterations: the
+    mesh."""
     from pipeline.enhance.baselines import presmooth
+    from pipeline.enhance.bounded_noise import bounded_noise_refine
 
-    if selector is not None and iterations > 0:
-        return learned_twicing(mesh, selector, device)
-    return presmooth(mesh, iterations, passes, adaptive)
+    if iterations == 0:
+        return mesh
+    if selector is not None:
+        smooth = learned_twicing(mesh, selector, device)
+    else:
+        smooth = presmooth(mesh, iterations, passes, adaptive)
+    return smooth if bounded is None else bounded_noise_refine(mesh, smooth, bounded)
 
 
 def model_bytes(config: EnhanceConfig, name: str) -> bytes:

@@ -37,14 +37,15 @@ def test_the_view_update_ends_with_a_light_remesh(
 @pytest.mark.parametrize("learned", [True, False], ids=["selector", "adaptive"])
 def test_the_update_follows_the_chosen_share_of_the_network_correction(
         noisy_sphere: tuple[TriangleMesh, TriangleMesh], learned: bool) -> None:
-    from pipeline.enhance import baselines
+    from pipeline.enhance.inference import presmoothed
 
     _, noisy = noisy_sphere
     defaults = EnhanceConfig()
-    # What the networks' corrections start from: the selector's blend, or adaptive twicing.
+    # What the networks' corrections start from: the selector's blend, or adaptive twicing,
+    # each ended by the bounded-noise refinement.
     base = (enhance_mesh(noisy, EnhanceConfig(method="selector")) if learned else
-            baselines.presmooth(noisy, defaults.presmooth_iterations, defaults.presmooth_passes,
-                                defaults.presmooth_adaptive))
+            presmoothed(noisy, defaults.presmooth_iterations, defaults.presmooth_passes,
+                        defaults.presmooth_adaptive, None, bounded=defaults.bounded_noise))
 
     def moves(gain: float) -> np.ndarray:
         out = enhance_mesh(noisy, EnhanceConfig(method="regressor", resolution=96,
