@@ -187,7 +187,10 @@ def _gain_lines(report: dict) -> list[str]:
 def _presmoothing(data: dict) -> str:
     iterations, passes = data.get("presmooth_iterations", 0), data.get("presmooth_passes", 1)
     if data.get("presmooth_learned") and iterations > 0:
-        return "the shipped selector's per-vertex blend of twicings (`learned_twicing`)"
+        blend = "the shipped selector's per-vertex blend of twicings (`learned_twicing`)"
+        if data.get("presmooth_bounded"):
+            blend += ", then the bounded-noise refinement (`bounded_noise_refine`)"
+        return blend
     if data.get("presmooth_adaptive"):
         return (f"twicing ({passes} passes) with its count chosen per vertex among several, "
                 f"a pilot at {iterations} iterations estimating each count's bias")

@@ -1,9 +1,11 @@
 from collections import deque
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from pipeline.enhance import EnhanceConfig
 from pipeline.enhance.baselines import twicing_smooth
 from pipeline.enhance.bounded_noise import (
     BoundedNoiseConfig,
@@ -12,6 +14,7 @@ from pipeline.enhance.bounded_noise import (
     neighbourhood_range,
     residual_kurtosis,
 )
+from pipeline.enhance.config import validate_config
 from pipeline.enhance.data import noisy_along_normals
 from tests.pipeline.enhance.conftest import radial_rms_m, sphere
 from tests.pipeline.enhance.test_boundary import grid
@@ -114,3 +117,8 @@ def test_a_noisy_sphere_comes_back_closer_than_its_smoothing(seed):
     refined = bounded_noise_refine(noisy, smooth, BoundedNoiseConfig())
     assert radial_rms_m(refined) < 0.85 * radial_rms_m(smooth)
     assert radial_rms_m(refined) < 0.0011
+
+
+def test_a_negative_ring_count_is_named():
+    with pytest.raises(ValueError, match="bounded_noise"):
+        validate_config(EnhanceConfig(bounded_noise=BoundedNoiseConfig(rings=-1)))

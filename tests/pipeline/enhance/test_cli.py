@@ -70,6 +70,7 @@ def test_enhance_mesh_defaults_are_the_pipelines():
              "device": "device"}
     for option, field in pairs.items():
         assert cli[option] == getattr(config, field), option
+    assert cli["bounded_rings"] == config.bounded_noise.rings
     # No --gain: the learned per-vertex gains; --gain G: G everywhere.
     assert cli["gain"] is None and config.learned_gain
 
