@@ -57,7 +57,8 @@ def model_card(report: dict) -> str:
     lines += _continuation_lines(report.get("continued"), "refined" in report,
                                  remasked is not None)
     lines += _refined_lines(report.get("refined"), remasked is not None)
-    lines += _remasked_lines(remasked)
+    lines += _remasked_lines(remasked, "rebased" in report)
+    lines += _rebased_lines(report.get("rebased"))
     lines += ["", "Config (of the first run above):", "", "```json", json.dumps(cfg, indent=1),
               "```", ""]
     return "\n".join(lines)
@@ -276,17 +277,19 @@ def _refined_lines(refined: dict | None, superseded: bool = False) -> list[str]:
     return lines + ["", refined["note"]]
 
 
-def _remasked_lines(remasked: dict | None) -> list[str]:
+def _remasked_lines(remasked: dict | None, superseded: bool = False) -> list[str]:
     """The card's section on the regressor and LDM trained again on the enhance stage's own
     degradation with the tight loss mask: the report of a `--init ... --stages
-    regressor,finetune --mix mesh --loss-mask ...` run, with its command."""
+    regressor,finetune --mix mesh --loss-mask ...` run, with its command; `superseded`: a
+    later section's networks are shipped (`_rebased_lines`)."""
     if not remasked:
         return []
     data = remasked["data"]
+    shipped = ("superseded: the next section's are shipped" if superseded
+               else "these are the shipped regressor, vae and ldm")
     lines = [
         "",
-        "## Trained again on mesh degradations with the tight loss mask (these are the shipped "
-        "regressor, vae and ldm)",
+        f"## Trained again on mesh degradations with the tight loss mask ({shipped})",
         "",
         f"- run as `{remasked['command']}` on {remasked['device']}, from the weights above; "
         f"pairs in {data['seconds'] / 60:.1f} minutes: {data['train_pairs']} training, "
@@ -317,6 +320,46 @@ def _remasked_lines(remasked: dict | None) -> list[str]:
               f"{x['bulk_normal_rmse_permille']:.3f} |"
               for k, x in v.items() if isinstance(x, dict)]
     return lines
+
+
+def _rebased_lines(rebased: dict | None) -> list[str]:
+    """The card's section on the regressor, LDM and vertex gains trained again on pairs whose
+    base ends with the bounded-noise refinement (a `--init ... --stages
+    regressor,finetune,gain` run), with its command."""
+    if not rebased:
+        return []
+    data, r, f, g = rebased["data"], rebased["regressor"], rebased["finetune"], rebased["gain"]
+    v = rebased["validation"]
+    lines = [
+        "",
+        "## Trained again on the bounded-noise refinement's base (seventeenth session; these "
+        "are the shipped regressor, vae, ldm and vertex gains)",
+        "",
+        f"- run as `{rebased['command']}` on {rebased['device']}, from the weights of the last "
+        f"section; pairs in {data['minutes']} minutes: {data['train_pairs']} training, "
+        f"{data['validation_pairs']} validation, same meshes and split as above",
+        f"- recorded {rebased['recorded']}",
+        "- the base depth is now the shipped selector's blend of twicings **ended by the "
+        "bounded-noise refinement** (`bounded_noise_refine`, `DataConfig.presmooth_bounded`), "
+        "as the enhance stage's pre-smoothing now is: each vertex moved along its normal by the "
+        "middle of the range of the noisy vertices' offsets within three rings, where those "
+        "offsets are light-tailed (README, Enhancement)",
+        f"- the regressor stage ran {r['steps']} steps in its {r['cap_minutes']}-minute cap "
+        f"(final loss {r['final_loss']}), the end-to-end finetune {f['steps']} steps in "
+        f"{f['train_minutes']} minutes ({f['final_loss']}); the vertex gains then {g['steps']} "
+        f"steps each on {g['draws']} draws of the seven real training meshes (data "
+        f"{g['data_minutes']} minutes); the depth networks stored as float16",
+        f"- validation, {v['views']} held-apart renders of the mesh mix (thousandths of the "
+        "depth range, as in the last section; the base is the new one, so the rows are not "
+        "comparable with the last section's):",
+        "",
+        "| method | RMSE | edge RMSE | bulk RMSE | bulk normal RMSE |",
+        "| --- | --- | --- | --- | --- |",
+    ]
+    lines += [f"| {k} | {x['rmse_permille']:.3f} | {x['edge_rmse_permille']:.3f} | "
+              f"{x['bulk_rmse_permille']:.3f} | {x['bulk_normal_rmse_permille']:.3f} |"
+              for k, x in v.items() if isinstance(x, dict)]
+    return lines + ["", f"  {rebased['validation_note']}", f"- mesh level, {rebased['mesh_level']}"]
 
 
 def _stage_table(run: dict) -> list[str]:

@@ -135,7 +135,8 @@ def test_the_shipped_model_card_is_the_one_its_training_report_renders():
     card = weights.joinpath("MODEL_CARD.md").read_text()
     assert card == model_card(report)
     assert "## The LDM refines the regressor (superseded" in card
-    assert "tight loss mask (these are the shipped regressor, vae and ldm)" in card
+    assert "tight loss mask (superseded: the next section's are shipped)" in card
+    assert "refinement's base (seventeenth session; these are the shipped" in card
     assert report["remasked"]["loss_mask_threshold_n"] == 0.02
 
 
