@@ -135,7 +135,7 @@ def twicing_bounded_noise(noisy, truth, iterations: int) -> dict:
     """Twicing at `iterations` ended by the bounded-noise refinement: the same trick as the
     enhance stage's pre-smoothing on a classical smoother, with no trained part."""
     from pipeline.enhance.baselines import twicing_smooth
-    from pipeline.enhance.bounded_noise import BoundedNoiseConfig, bounded_noise_refine
+    from pipeline.enhance.bounded_noise import bounded_noise_refine
 
     t = time.perf_counter()
     result = bounded_noise_refine(noisy, twicing_smooth(noisy, iterations), BoundedNoiseConfig())
