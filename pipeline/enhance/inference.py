@@ -171,20 +171,25 @@ the cache. The selector ensemble on beetle's 258 k rows, 2 cores: 2.6 s in one b
 in chunks of 64 k rows, 1.1 s of 8 k, 1.0 s of 4 k."""
 
 
-def by_row_chunks(model, rows: NDArray[np.float32]) -> NDArray[np.float32]:
-    """(V, ...) a per-row network's outputs for (V, F) rows, `ROW_CHUNK` rows at a time
-    (no rows: one empty chunk)."""
+def by_row_chunks(model, rows: NDArray[np.float32], device: str = "cpu") -> NDArray[np.float32]:
+    """(V, ...) a per-row network's outputs for (V, F) rows, the network moved to `device`:
+    on the CPU `ROW_CHUNK` rows at a time (no rows: one empty chunk), on a GPU in one batch,
+    where the chunks' launches would cost more than the cache saves."""
     import torch
 
+    chunk = ROW_CHUNK if device == "cpu" else max(len(rows), 1)
+    model.to(device)
     with torch.no_grad():
-        rows_t = torch.from_numpy(rows)
-        return torch.cat([model(rows_t[i:i + ROW_CHUNK])
-                          for i in range(0, max(len(rows), 1), ROW_CHUNK)]).numpy()
+        rows_t = torch.from_numpy(rows).to(device)
+        return torch.cat([model(rows_t[i:i + chunk])
+                          for i in range(0, max(len(rows), 1), chunk)]).cpu().numpy()
 
 
-def vertex_gains(model, features: NDArray[np.float32]) -> NDArray[np.float64]:
-    """(V,) a loaded `VertexGainNet`'s gains for (V, F) `vertex_gain.gain_features`."""
-    return by_row_chunks(model, features).astype(np.float64)
+def vertex_gains(model, features: NDArray[np.float32], device: str = "cpu"
+                 ) -> NDArray[np.float64]:
+    """(V,) a loaded `VertexGainNet`'s gains for (V, F) `vertex_gain.gain_features`, run on
+    `device`."""
+    return by_row_chunks(model, features, device).astype(np.float64)
 
 
 def learned_twicing(mesh: TriangleMesh, selector: bytes, device: str | None = None
@@ -199,14 +204,16 @@ def apply_selector(model, mesh: TriangleMesh, device: str | None = None) -> Tria
     from pipeline.enhance.twicing_blend import twicing_candidates
 
     candidates = twicing_candidates(mesh, model.config.blend, device)
-    return mesh.with_vertices(selector_blend(model, candidates))
+    return mesh.with_vertices(selector_blend(model, candidates, device or "cpu"))
 
 
-def selector_blend(model, candidates: TwicingCandidates) -> NDArray[np.float64]:
-    """(V, 3) the candidates blended with a loaded `TwicingSelector`'s weights."""
+def selector_blend(model, candidates: TwicingCandidates, device: str = "cpu"
+                   ) -> NDArray[np.float64]:
+    """(V, 3) the candidates blended with a loaded `TwicingSelector`'s weights, run on
+    `device`."""
     from pipeline.enhance.twicing_blend import blend
 
-    return blend(candidates.vertices_m, by_row_chunks(model, candidates.features))
+    return blend(candidates.vertices_m, by_row_chunks(model, candidates.features, device))
 
 
 def presmoothed(
