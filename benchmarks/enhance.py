@@ -78,8 +78,9 @@ def bunny_protocol(meshes: Path, seed: int, edge_m: float = 0.005, name: str = "
     to 24 mm; `split_boundary` False gives that earlier protocol (up to the tenth session)."""
     import gpytoolbox
 
+    from pipeline.boundary_split import split_boundary_edges
     from pipeline.io.mesh_io import read_mesh
-    from pipeline.mesh_repair import repair, split_boundary_edges
+    from pipeline.mesh_repair import repair
 
     m = read_mesh(meshes / f"{name}.obj")
     v = m.vertices_m

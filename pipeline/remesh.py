@@ -25,13 +25,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from pipeline.angle_cleanup import enforce_angles
+from pipeline.boundary_split import split_boundary_edges
 from pipeline.mesh import TriangleMesh
 from pipeline.mesh_order import reordered, spatial_order
 from pipeline.mesh_repair import (
     edge_table,
     faces_per_edge,
     repair,
-    split_boundary_edges,
     triangle_angles_deg,
 )
 
