@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -264,10 +265,40 @@ def dihedral(x, k: int, inverse: bool = False):
     return x
 
 
+Network = Callable[["torch.Tensor", "torch.Tensor", "torch.Tensor"], "torch.Tensor"]
+"""A loaded network on its device: (N, 1, H, W) depth, validity and side inputs to the
+enhanced depth (`load_network`)."""
+
+
+def load_network(config: EnhanceConfig) -> Network:
+    """`config.method`'s network (regressor or LDM), loaded and moved to `config.device`."""
+    from pipeline.enhance.device import resolve_device
+    from pipeline.enhance.pipelines.depth_ldm import enhance_depth_ldm
+
+    device = resolve_device(config.device)
+    if config.method == "regressor":
+        model = load_regressor(model_bytes(config, "regressor")).to(device)
+
+        def regressor(d, v, e):
+            return model(d, v, e)
+        return regressor
+    if config.method == "ldm":
+        models = load_ldm(model_bytes(config, "vae"), model_bytes(config, "ldm"))
+        for part in (models.vae, models.unet, models.controlnet, models.refines):
+            if part is not None:
+                part.to(device)
+
+        def ldm(d, v, e):
+            return enhance_depth_ldm(models, d, v, config.steps, config.strength, config.seed, e)
+        return ldm
+    raise ValueError(f"method: {config.method!r} has no network")
+
+
 def run_network(
     base: DepthRenders, noisy: DepthRenders, config: EnhanceConfig
 ) -> NDArray[np.float32]:
-    """(N, H, W) enhanced normalised depth from the chosen network, invalid pixels unchanged.
+    """(N, H, W) enhanced normalised depth from the chosen network (`load_network`),
+    invalid pixels unchanged.
 
     `base` are the renders the network corrects (of the pre-smoothed mesh), `noisy` those of
     the mesh as it came, from the same views (their colour gives the edge input).
@@ -280,29 +311,14 @@ def run_network(
 
     from pipeline.enhance.device import resolve_device
     from pipeline.enhance.models.common import side_inputs
-    from pipeline.enhance.pipelines.depth_ldm import enhance_depth_ldm
 
+    net = load_network(config)
     device = resolve_device(config.device)
     d = torch.from_numpy(base.depth_n[:, None]).to(device)
     v = torch.from_numpy(base.valid[:, None]).to(device)
     edges_np = canny_edges(noisy.color_rgb, noisy.valid)
     e = None if edges_np is None else torch.from_numpy(edges_np[:, None]).to(device)
     side = side_inputs(e, torch.from_numpy(noisy.depth_n[:, None]).to(device), d, v)
-    if config.method == "regressor":
-        model = load_regressor(model_bytes(config, "regressor")).to(device)
-
-        def net(d, v, e):
-            return model(d, v, e)
-    elif config.method == "ldm":
-        models = load_ldm(model_bytes(config, "vae"), model_bytes(config, "ldm"))
-        for part in (models.vae, models.unet, models.controlnet, models.refines):
-            if part is not None:
-                part.to(device)
-
-        def net(d, v, e):
-            return enhance_depth_ldm(models, d, v, config.steps, config.strength, config.seed, e)
-    else:
-        raise ValueError(f"method: {config.method!r} has no network")
     total = torch.zeros_like(d)
     with torch.no_grad():
         for k in range(config.ensemble):
