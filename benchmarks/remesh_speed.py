@@ -1,0 +1,102 @@
+"""The light remesh's time, its kernel in one child against spatial pieces side by side, and
+the boundary split's rounds near the long edges against rounds over every face; prints JSON.
+
+    .venv/bin/python benchmarks/remesh_speed.py [--mesh NAME] [--repeats N]
+
+The input is what `enhance_mesh` hands the light remesh: the LDM's update of a protocol mesh
+(`bunny_protocol`, the LDM at 4 steps with no remesh), in a spatial order. Each variant runs
+`repeats` times, alternating, in this process after one warm-up call; the C2M figures of
+both remeshes against the protocol's truth say whether the pieces cost anything.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from enhance import bunny_protocol, score  # noqa: E402
+
+from pipeline.boundary_split import split_boundary_edges, split_rounds  # noqa: E402
+from pipeline.enhance.config import EnhanceConfig, enhance_mesh  # noqa: E402
+from pipeline.mesh import TriangleMesh, mean_edge_length_m  # noqa: E402
+from pipeline.mesh_order import reordered, spatial_order  # noqa: E402
+from pipeline.mesh_repair import edge_table, faces_per_edge, repair  # noqa: E402
+from pipeline.remesh import RemeshConfig, kernel_piece_count, remesh  # noqa: E402
+
+
+def light_remesh_config(mesh: TriangleMesh, processes: int | None) -> RemeshConfig:
+    """`enhance.config.light_remesh`'s settings, with `processes` kernel children."""
+    from pipeline.enhance.config import LIGHT_REMESH_MAX_ADDED_OUTSIDE, LIGHT_REMESH_MAX_LOST_EDGES
+
+    return RemeshConfig(target_edge_length_m=mean_edge_length_m(mesh), iterations=1,
+                        max_kernel_added_outside=LIGHT_REMESH_MAX_ADDED_OUTSIDE,
+                        max_kernel_lost_edges=LIGHT_REMESH_MAX_LOST_EDGES,
+                        min_component_share=0.0, kernel_processes=processes)
+
+
+def split_everywhere(v: np.ndarray, f: np.ndarray, target_m: float):
+    """The boundary split's rounds over every face (as before the region)."""
+    edges, opposite = edge_table(f)
+    on_boundary = np.zeros(len(v), dtype=bool)
+    on_boundary[edges[faces_per_edge(opposite, len(edges)) == 1].ravel()] = True
+    out = split_rounds(v, f, on_boundary, np.zeros((0, 2), np.int64), target_m)
+    assert out is not None
+    return out[0], out[1]
+
+
+def timed(call, repeats: int) -> list[float]:
+    out = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        call()
+        out.append(round(time.perf_counter() - start, 3))
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--meshes", default=str(ROOT.parent / "shared" / "data" / "meshes"))
+    ap.add_argument("--mesh", default="stanford-bunny")
+    ap.add_argument("--repeats", type=int, default=4)
+    args = ap.parse_args()
+    truth, noisy = bunny_protocol(Path(args.meshes), 0, 0.005, name=args.mesh)
+    update = enhance_mesh(noisy, EnhanceConfig(method="ldm", remesh_iterations=0))
+    update = reordered(update, spatial_order(update))
+    configs = {"one_child": light_remesh_config(update, 1),
+               "pieces": light_remesh_config(update, None)}
+    results = {name: remesh(update, config)[0] for name, config in configs.items()}  # warm-up
+    seconds: dict[str, list[float]] = {name: [] for name in configs}
+    for _ in range(args.repeats):
+        for name, config in configs.items():
+            seconds[name] += timed(lambda config=config: remesh(update, config), 1)
+    v, f, _ = repair(update.vertices_m, update.faces, 0.0)
+    edge_m = mean_edge_length_m(update)
+    region, whole = split_boundary_edges(v, f, edge_m), split_everywhere(v, f, edge_m)
+    print(json.dumps({
+        "mesh": args.mesh, "faces": update.face_count, "cores": len(os.sched_getaffinity(0)),
+        "pieces": kernel_piece_count(update.face_count, None),
+        "light_remesh_seconds": seconds,
+        "c2m": {name: {k: round(x, 5) for k, x in score(mesh, truth, 0.0).items()
+                       if k != "seconds"} for name, mesh in results.items()},
+        "faces_out": {name: mesh.face_count for name, mesh in results.items()},
+        "boundary_split_seconds": {
+            "near_long_edges": timed(lambda: split_boundary_edges(v, f, edge_m), args.repeats),
+            "every_face": timed(lambda: split_everywhere(v, f, edge_m), args.repeats)},
+        "boundary_split_same": bool(np.array_equal(region[0], whole[0])
+                                    and np.array_equal(region[1], whole[1])),
+        "boundary_split_added_vertices": len(region[0]) - len(v),
+    }, indent=1))
+
+
+if __name__ == "__main__":
+    main()
