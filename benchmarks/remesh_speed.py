@@ -26,11 +26,11 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from enhance import bunny_protocol, score  # noqa: E402
 
-from pipeline.boundary_split import split_boundary_edges, split_rounds  # noqa: E402
+from pipeline.boundary_split import split_boundary_edges, split_everywhere  # noqa: E402
 from pipeline.enhance.config import EnhanceConfig, enhance_mesh  # noqa: E402
 from pipeline.mesh import TriangleMesh, mean_edge_length_m  # noqa: E402
 from pipeline.mesh_order import reordered, spatial_order  # noqa: E402
-from pipeline.mesh_repair import edge_table, faces_per_edge, repair  # noqa: E402
+from pipeline.mesh_repair import repair  # noqa: E402
 from pipeline.remesh import RemeshConfig, kernel_piece_count, remesh  # noqa: E402
 
 
@@ -42,16 +42,6 @@ def light_remesh_config(mesh: TriangleMesh, processes: int | None) -> RemeshConf
                         max_kernel_added_outside=LIGHT_REMESH_MAX_ADDED_OUTSIDE,
                         max_kernel_lost_edges=LIGHT_REMESH_MAX_LOST_EDGES,
                         min_component_share=0.0, kernel_processes=processes)
-
-
-def split_everywhere(v: np.ndarray, f: np.ndarray, target_m: float):
-    """The boundary split's rounds over every face (as before the region)."""
-    edges, opposite = edge_table(f)
-    on_boundary = np.zeros(len(v), dtype=bool)
-    on_boundary[edges[faces_per_edge(opposite, len(edges)) == 1].ravel()] = True
-    out = split_rounds(v, f, on_boundary, np.zeros((0, 2), np.int64), target_m)
-    assert out is not None
-    return out[0], out[1]
 
 
 def timed(call, repeats: int) -> list[float]:

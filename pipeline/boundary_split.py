@@ -44,8 +44,17 @@ def split_boundary_edges(vertices_m: FloatArray, faces: Faces, target_edge_m: fl
         return v, f
     region = np.flatnonzero(_faces_near(f, edges[wanted], len(v), REGION_RINGS))
     split = _split_in_region(v, f, region, boundary_edges, on_boundary, target_edge_m)
-    if split is not None:
-        return split
+    return split if split is not None else split_everywhere(v, f, target_edge_m)
+
+
+def split_everywhere(vertices_m: FloatArray, faces: Faces, target_edge_m: float
+                     ) -> tuple[FloatArray, Faces]:
+    """`split_boundary_edges` with its rounds over every face: where a chain reaches the
+    region's rim, and the reference its region is held equal to."""
+    v, f = np.asarray(vertices_m, np.float64), np.asarray(faces, np.int32)
+    edges, opposite = edge_table(f)
+    on_boundary = np.zeros(len(v), dtype=bool)
+    on_boundary[edges[faces_per_edge(opposite, len(edges)) == 1].ravel()] = True
     whole = split_rounds(v, f, on_boundary, np.zeros((0, 2), np.int64), target_edge_m)
     assert whole is not None  # with no rim, no round can reach one
     return whole[0], whole[1]

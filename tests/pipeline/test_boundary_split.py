@@ -6,7 +6,7 @@ import trimesh
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.boundary_split import split_boundary_edges, split_rounds
+from pipeline.boundary_split import split_boundary_edges, split_everywhere
 from pipeline.mesh_repair import edge_table, face_areas, faces_per_edge
 
 
@@ -41,16 +41,6 @@ def test_long_edges_at_the_boundary_are_split_and_the_surface_kept(
                                atol=1e-9)
 
 
-def _split_everywhere(v: np.ndarray, f: np.ndarray, target_m: float):
-    """The rounds on the whole mesh, as `split_boundary_edges` ran before it used regions."""
-    edges, opposite = edge_table(f)
-    on_boundary = np.zeros(len(v), dtype=bool)
-    on_boundary[edges[faces_per_edge(opposite, len(edges)) == 1].ravel()] = True
-    out = split_rounds(v, f, on_boundary, np.zeros((0, 2), np.int64), target_m)
-    assert out is not None
-    return out[0], out[1]
-
-
 @settings(max_examples=40, deadline=None)
 @given(subdivisions=st.integers(2, 4), cut=st.floats(0.0, 0.9), coarse=st.floats(0.0, 1.0),
        target_m=st.floats(0.005, 0.2), seed=st.integers(0, 2**16), rings=st.integers(0, 6))
@@ -76,7 +66,7 @@ def test_the_rounds_near_the_long_edges_equal_the_rounds_on_the_whole_mesh(
     f = np.delete(f, band[: len(band) // 2], axis=0)
     used = np.unique(f)
     v, f = v[used], np.searchsorted(used, f).astype(np.int32)
-    expected_v, expected_f = _split_everywhere(v, f, target_m)
+    expected_v, expected_f = split_everywhere(v, f, target_m)
     with mock.patch.object(boundary_split, "REGION_RINGS", rings):
         out_v, out_f = split_boundary_edges(v, f, target_m)
     np.testing.assert_array_equal(out_v, expected_v)
@@ -97,5 +87,5 @@ def test_a_chain_that_reaches_the_region_rim_is_refused() -> None:
     assert _split_in_region(v, f, np.array([0, 1]), boundary_edges, on_boundary, 0.1) is None
     whole = _split_in_region(v, f, np.array([0, 1, 2]), boundary_edges, on_boundary, 0.1)
     assert whole is not None
-    np.testing.assert_array_equal(whole[1], _split_everywhere(v, f, 0.1)[1])
+    np.testing.assert_array_equal(whole[1], split_everywhere(v, f, 0.1)[1])
     np.testing.assert_array_equal(split_boundary_edges(v, f, 0.1)[1], whole[1])
