@@ -315,7 +315,8 @@ def light_remesh(mesh: TriangleMesh, iterations: int) -> TriangleMesh:
     RMS of the other eight meshes (`benchmarks/enhance_remesh.py`). The kernel runs in
     spatial pieces side by side, one per core (`remesh_pieces`): at the mesh's own edge
     length the held cuts cost nothing measurable (the bunny's LDM update 0.66126 against
-    0.66128 mm), and on 2 cores the light remesh takes 1.9-2.3 s against 2.1-2.6 s."""
+    0.66128 mm), and on 2 cores two pieces take 10-15 % off the light remesh
+    (`benchmarks/remesh_speed.py`)."""
     from pipeline.remesh import RemeshConfig, remesh
 
     config = RemeshConfig(target_edge_length_m=mean_edge_length_m(mesh), iterations=iterations,
