@@ -271,13 +271,19 @@ enhanced depth (`load_network`)."""
 
 
 def load_network(config: EnhanceConfig) -> Network:
-    """`config.method`'s network (regressor or LDM), loaded and moved to `config.device`."""
+    """`config.method`'s network (regressor or LDM), loaded and moved to `config.device`; on
+    the CPU its weights in channels-last order, where oneDNN's convolutions run quicker (the
+    bunny's 6 views through the LDM on 2 cores 2.09-2.26 -> 1.66-1.83 s, the output within
+    3.4e-6 of normalised depth). Not measured on a GPU, so left as it was there."""
+    import torch
+
     from pipeline.enhance.device import resolve_device
     from pipeline.enhance.pipelines.depth_ldm import enhance_depth_ldm
 
     device = resolve_device(config.device)
+    layout = torch.channels_last if device.type == "cpu" else torch.contiguous_format
     if config.method == "regressor":
-        model = load_regressor(model_bytes(config, "regressor")).to(device)
+        model = load_regressor(model_bytes(config, "regressor")).to(device, memory_format=layout)
 
         def regressor(d, v, e):
             return model(d, v, e)
@@ -286,7 +292,7 @@ def load_network(config: EnhanceConfig) -> Network:
         models = load_ldm(model_bytes(config, "vae"), model_bytes(config, "ldm"))
         for part in (models.vae, models.unet, models.controlnet, models.refines):
             if part is not None:
-                part.to(device)
+                part.to(device, memory_format=layout)
 
         def ldm(d, v, e):
             return enhance_depth_ldm(models, d, v, config.steps, config.strength, config.seed, e)
