@@ -283,11 +283,7 @@ def load_network(config: EnhanceConfig) -> Network:
     device = resolve_device(config.device)
     layout = torch.channels_last if device.type == "cpu" else torch.contiguous_format
     if config.method == "regressor":
-        model = load_regressor(model_bytes(config, "regressor")).to(device, memory_format=layout)
-
-        def regressor(d, v, e):
-            return model(d, v, e)
-        return regressor
+        return load_regressor(model_bytes(config, "regressor")).to(device, memory_format=layout)
     if config.method == "ldm":
         models = load_ldm(model_bytes(config, "vae"), model_bytes(config, "ldm"))
         for part in (models.vae, models.unet, models.controlnet, models.refines):
