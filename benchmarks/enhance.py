@@ -12,13 +12,16 @@ renders (meshes never trained on). Targets are checked and reported as they come
 The timing alone, per stage, in this process (on a GPU: `--device cuda`):
 
     .venv/bin/python benchmarks/enhance.py --perf-child [--device cuda] [--remesh-iterations 0]
+        [--profile FILE]
 """
 
 from __future__ import annotations
 
 import argparse
+import cProfile
 import json
 import os
+import pstats
 import resource
 import subprocess
 import sys
@@ -280,7 +283,16 @@ def perf_child(args) -> None:
     base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     stage_of = {share: stage for stage, share in STAGE_PROGRESS.items()}
     ends = [("start", time.perf_counter())]
+    profiler = cProfile.Profile() if args.profile else None
+    if profiler:
+        profiler.enable()
     enhance_mesh(noisy, cfg, lambda share: ends.append((stage_of[share], time.perf_counter())))
+    if profiler:
+        profiler.disable()
+        with open(args.profile, "w") as f:
+            stats = pstats.Stats(profiler, stream=f)
+            stats.sort_stats("cumulative").print_stats(70)
+            stats.sort_stats("tottime").print_stats(40)
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     stages = {name: t - before for (_, before), (name, t) in zip(ends, ends[1:], strict=False)}
     print(json.dumps({
@@ -321,6 +333,8 @@ def main() -> None:
     ap.add_argument("--perf-child", action="store_true",
                     help="only time one LDM enhancement (with its stages) in this process")
     ap.add_argument("--device", default="auto", help="torch device of the timing: auto, cpu, cuda")
+    ap.add_argument("--profile", default=None,
+                    help="with --perf-child: write cProfile's figures of the timed call here")
     ap.add_argument("--remesh-iterations", type=int, default=1,
                     help="light remesh rounds of the timing (0: none)")
     ap.add_argument("--edge-mm", type=float, default=5.0,

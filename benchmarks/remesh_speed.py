@@ -1,7 +1,7 @@
 """The light remesh's time, its kernel in one child against spatial pieces side by side, and
 the boundary split's rounds near the long edges against rounds over every face; prints JSON.
 
-    .venv/bin/python benchmarks/remesh_speed.py [--mesh NAME] [--repeats N]
+    .venv/bin/python benchmarks/remesh_speed.py [--mesh NAME] [--repeats N] [--pieces N ...]
 
 The input is what `enhance_mesh` hands the light remesh: the LDM's update of a protocol mesh
 (`bunny_protocol`, the LDM at 4 steps with no remesh), in a spatial order. Each variant runs
@@ -58,17 +58,23 @@ def main() -> None:
     ap.add_argument("--meshes", default=str(ROOT.parent / "shared" / "data" / "meshes"))
     ap.add_argument("--mesh", default="stanford-bunny")
     ap.add_argument("--repeats", type=int, default=4)
+    ap.add_argument("--pieces", type=int, nargs="*", default=[],
+                    help="also time these piece counts (the default's is one per core)")
     args = ap.parse_args()
     truth, noisy = bunny_protocol(Path(args.meshes), 0, 0.005, name=args.mesh)
     update = enhance_mesh(noisy, EnhanceConfig(method="ldm", remesh_iterations=0))
     update = reordered(update, spatial_order(update))
     configs = {"one_child": light_remesh_config(update, 1),
                "pieces": light_remesh_config(update, None)}
+    configs |= {f"pieces_{n}": light_remesh_config(update, n) for n in args.pieces}
     results = {name: remesh(update, config)[0] for name, config in configs.items()}  # warm-up
     seconds: dict[str, list[float]] = {name: [] for name in configs}
+    waits: dict[str, list[float]] = {name: [] for name in configs}
     for _ in range(args.repeats):
         for name, config in configs.items():
-            seconds[name] += timed(lambda config=config: remesh(update, config), 1)
+            start = time.perf_counter()
+            waits[name].append(round(remesh(update, config)[1]["kernel_wait_s"], 3))
+            seconds[name].append(round(time.perf_counter() - start, 3))
     v, f, _ = repair(update.vertices_m, update.faces, 0.0)
     edge_m = mean_edge_length_m(update)
     region, whole = split_boundary_edges(v, f, edge_m), split_everywhere(v, f, edge_m)
@@ -76,6 +82,7 @@ def main() -> None:
         "mesh": args.mesh, "faces": update.face_count, "cores": len(os.sched_getaffinity(0)),
         "pieces": kernel_piece_count(update.face_count, None),
         "light_remesh_seconds": seconds,
+        "waiting_for_the_kernel_seconds": waits,
         "c2m": {name: {k: round(x, 5) for k, x in score(mesh, truth, 0.0).items()
                        if k != "seconds"} for name, mesh in results.items()},
         "faces_out": {name: mesh.face_count for name, mesh in results.items()},

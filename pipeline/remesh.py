@@ -11,11 +11,13 @@ enforced by :mod:`pipeline.angle_cleanup`.
 
 from __future__ import annotations
 
-import io
 import os
+import shutil
 import subprocess
 import sys
+import tempfile
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -133,16 +135,15 @@ def _boundary_split_kernel(vertices_m: FloatArray, faces: Faces, edge_m: float,
     return _kernel(v, f, edge_m, iterations)
 
 
-def _child_main() -> None:
-    """Child process body (``python -m pipeline.remesh``): arrays in on stdin as .npz,
-    the remeshed arrays out on stdout as .npz; any failure exits non-zero."""
-    with np.load(io.BytesIO(sys.stdin.buffer.read()), allow_pickle=False) as data:
+def _child_main(request_path: str, result_path: str) -> None:
+    """Child process body (``python -m pipeline.remesh REQUEST RESULT``): arrays in from the
+    .npz file REQUEST, the remeshed arrays out to the .npz file RESULT; any failure exits
+    non-zero."""
+    with np.load(request_path, allow_pickle=False) as data:
         kernel = _boundary_split_kernel if bool(data["split"]) else _kernel
         vertices, faces = kernel(data["vertices_m"], data["faces"], float(data["edge_m"]),
                                  int(data["iterations"]))
-    out = io.BytesIO()
-    np.savez(out, vertices_m=vertices, faces=faces)
-    sys.stdout.buffer.write(out.getvalue())
+    np.savez(result_path, vertices_m=vertices, faces=faces)
 
 
 def start_isolated(vertices_m: FloatArray, faces: Faces, edge_m: float, iterations: int,
@@ -152,36 +153,39 @@ def start_isolated(vertices_m: FloatArray, faces: Faces, edge_m: float, iteratio
     why it failed). The caller may work meanwhile.
 
     A plain child process rather than multiprocessing: it never re-imports the caller's
-    main module, so it works from any script, worker or test runner. A thread feeds and
-    drains its pipes, so neither side blocks on a full pipe while the caller works.
+    main module, so it works from any script, worker or test runner. The arrays go both ways
+    as files: through pipes, a thread of the caller had to move each 64 KB, waiting its turn
+    for the interpreter lock while the caller worked, and the children waited on it (on the
+    device machine's H200 host, 1.2 s of the bunny's light remesh went in waiting).
     """
-    request = io.BytesIO()
+    folder = Path(tempfile.mkdtemp(prefix="volumesh-remesh-"))
+    request, result = folder / "request.npz", folder / "result.npz"
     np.savez(request, vertices_m=np.asarray(vertices_m, np.float64),
              faces=np.asarray(faces, np.int32), edge_m=np.float64(edge_m),
              iterations=np.int64(iterations), split=np.bool_(split))
     package_root = str(Path(__file__).resolve().parents[1])
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join(p for p in (package_root, env.get("PYTHONPATH")) if p)
-    child = subprocess.Popen([sys.executable, "-m", "pipeline.remesh"], stdin=subprocess.PIPE,
-                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env)
-    outcome: list[KernelOutcome] = []
-
-    def talk() -> None:
-        try:
-            stdout, stderr = child.communicate(request.getvalue(), timeout=timeout_s)
-        except subprocess.TimeoutExpired:
-            child.kill()
-            child.communicate()
-            outcome.append((None, f"remesh kernel timed out after {timeout_s:g} s"))
-            return
-        outcome.append(_read_outcome(child.returncode, stdout, stderr))
-
-    talker = threading.Thread(target=talk, daemon=True)
-    talker.start()
+    with open(folder / "stderr.txt", "wb") as stderr:
+        child = subprocess.Popen([sys.executable, "-m", "pipeline.remesh", str(request),
+                                  str(result)], stdin=subprocess.DEVNULL,
+                                 stdout=subprocess.DEVNULL, stderr=stderr, env=env)
+    deadline = time.monotonic() + timeout_s
+    # A thread in a blocking waitpid wakes the moment the child ends; Popen.wait(timeout)
+    # would poll, up to 50 ms late.
+    waiter = threading.Thread(target=child.wait, daemon=True)
+    waiter.start()
 
     def wait() -> KernelOutcome:
-        talker.join()
-        return outcome[0]
+        waiter.join(max(0.0, deadline - time.monotonic()))
+        try:
+            if waiter.is_alive():
+                child.kill()
+                waiter.join()
+                return None, f"remesh kernel timed out after {timeout_s:g} s"
+            return _read_outcome(child.returncode, result, folder / "stderr.txt")
+        finally:
+            shutil.rmtree(folder, ignore_errors=True)
 
     return wait
 
@@ -235,14 +239,14 @@ def start_kernel(vertices_m: FloatArray, faces: Faces, config: RemeshConfig
     return wait
 
 
-def _read_outcome(returncode: int, stdout: bytes, stderr: bytes) -> KernelOutcome:
+def _read_outcome(returncode: int, result: Path, stderr: Path) -> KernelOutcome:
     if returncode < 0:
         return None, f"remesh kernel crashed (signal {-returncode})"
     if returncode != 0:
-        lines = stderr.decode(errors="replace").strip().splitlines()
+        lines = stderr.read_text(errors="replace").strip().splitlines()
         return None, f"remesh kernel failed: {lines[-1] if lines else returncode}"
     try:
-        with np.load(io.BytesIO(stdout), allow_pickle=False) as data:
+        with np.load(result, allow_pickle=False) as data:
             return (np.asarray(data["vertices_m"], np.float64),
                     np.asarray(data["faces"], np.int32)), None
     except (ValueError, OSError, KeyError) as exc:
@@ -269,7 +273,8 @@ def _outside(angles: dict[str, float]) -> float:
 
 
 def remesh(mesh: TriangleMesh, config: RemeshConfig) -> tuple[TriangleMesh, dict[str, Any]]:
-    """The mesh remeshed isotropically; stats hold repairs, angle figures and any warning.
+    """The mesh remeshed isotropically; stats hold repairs, angle figures, any warning and,
+    where the kernel runs in a child, the seconds the caller waited for it (`kernel_wait_s`).
 
     Where the kernel's result may be dropped (`max_kernel_added_outside`,
     `max_kernel_lost_edges`) and it runs in a child, the input is cleaned up while the child
@@ -289,7 +294,9 @@ def remesh(mesh: TriangleMesh, config: RemeshConfig) -> tuple[TriangleMesh, dict
         wait = start_kernel(vertices, faces, config)
         if judged:
             input_cleaned = _cleaned_up(vertices, faces, config, dict(stats))
+        waited_from = time.perf_counter()
         result, warning = wait()
+        stats["kernel_wait_s"] = time.perf_counter() - waited_from
     else:
         result, warning = _boundary_split_kernel(vertices, faces, config.target_edge_length_m,
                                                  config.iterations), None
@@ -367,4 +374,4 @@ def _cleaned_up(vertices_m: FloatArray, faces: Faces, config: RemeshConfig,
 
 
 if __name__ == "__main__":
-    _child_main()
+    _child_main(*sys.argv[1:3])
