@@ -46,12 +46,17 @@ class BoundedNoiseConfig:
 
 
 def bounded_noise_refine(noisy: TriangleMesh, smooth: TriangleMesh,
-                         config: BoundedNoiseConfig) -> TriangleMesh:
+                         config: BoundedNoiseConfig, device: str | None = None) -> TriangleMesh:
     """`smooth` (a smoothing of `noisy`, the same faces) with each vertex moved along its normal
     by the middle of the residual range of its neighbourhood; `smooth` itself where
-    `config.rings` is 0 or the residuals are not light-tailed (`residual_kurtosis`)."""
+    `config.rings` is 0 or the residuals are not light-tailed (`residual_kurtosis`). In torch
+    on `device` where given (`bounded_noise_torch`), else in numpy and scipy."""
     if config.rings == 0:
         return smooth
+    if device is not None:
+        from pipeline.enhance.bounded_noise_torch import refined
+
+        return refined(noisy, smooth, config, device)
     normals = vertex_normals(smooth.vertices_m, smooth.faces).astype(np.float64)
     residual_m = np.sum((noisy.vertices_m - smooth.vertices_m) * normals, axis=1)
     if residual_kurtosis(residual_m) >= config.max_kurtosis:
@@ -65,14 +70,15 @@ def bounded_noise_refine(noisy: TriangleMesh, smooth: TriangleMesh,
     return smooth.with_vertices(smooth.vertices_m + normals * middle_m[:, None])
 
 
-def residual_kurtosis(residual_m: NDArray[np.float64]) -> float:
-    """The residuals' kurtosis, E[(x - mean)^4] / var^2: 1.8 for uniform noise, 3 for
-    Gaussian, more for noise with outliers (inf for residuals that are all alike)."""
+def residual_kurtosis(residual_m) -> float:
+    """The (V,) residuals' kurtosis, E[(x - mean)^4] / var^2: 1.8 for uniform noise, 3 for
+    Gaussian, more for noise with outliers (inf for residuals that are all alike); numpy or
+    torch."""
     centred = residual_m - residual_m.mean()
-    variance = float(np.mean(centred**2))
+    variance = float((centred**2).mean())
     if variance == 0.0:
         return float("inf")
-    return float(np.mean(centred**4)) / variance**2
+    return float((centred**4).mean()) / variance**2
 
 
 def closed_neighbourhoods(faces: NDArray[np.int32], vertex_count: int) -> sp.csr_matrix:

@@ -181,13 +181,13 @@ def enhance_mesh(
         return baselines.adaptive_twicing(mesh, baselines.AdaptiveTwicingConfig())
     if config.method == "bilateral":
         return baselines.bilateral_denoise(mesh, config.iterations)
-    from pipeline.enhance.device import resolve_device
+    from pipeline.enhance.device import accelerator, resolve_device
 
     device = resolve_device(config.device).type
     if config.method == "selector":
         return bounded_noise_refine(
             mesh, learned_twicing(mesh, model_bytes(config, "selector"), device),
-            config.bounded_noise)
+            config.bounded_noise, accelerator(device))
 
     def done(stage: str) -> None:
         if progress is not None:
@@ -200,7 +200,7 @@ def enhance_mesh(
     # loops. Loading the networks beside the pre-smoothing was slower on 2 cores: two
     # threads' torch ops each ask for every core (bunny 5.2-6.2 s against 4.9-5.1 s).
     with ThreadPoolExecutor(max_workers=1) as pool:
-        gate = pool.submit(skips_enhancement, mesh, config)
+        gate = pool.submit(skips_enhancement, mesh, config, device)
         renders = render_depth(ordered, views_for(ordered, config), with_color=True)
         if gate.result():
             done("remesh")
@@ -280,12 +280,16 @@ def learned_vertex_gain(
     return vertex_gains(model, gain_features(steps, mean_edge_length_m(mesh)), device)
 
 
-def skips_enhancement(mesh: TriangleMesh, config: EnhanceConfig) -> bool:
+def skips_enhancement(mesh: TriangleMesh, config: EnhanceConfig, device: str | None = None
+                      ) -> bool:
     """Whether `enhance_mesh` leaves `mesh` as it is: a network method on a mesh whose
-    estimated noise is below `config.min_noise_ratio`."""
+    estimated noise is below `config.min_noise_ratio` (estimated on `device` where it is an
+    accelerator)."""
     if config.method not in ("ldm", "regressor") or config.min_noise_ratio == 0:
         return False
-    return noise_to_edge_ratio(mesh) < config.min_noise_ratio
+    from pipeline.enhance.device import accelerator
+
+    return noise_to_edge_ratio(mesh, accelerator(device)) < config.min_noise_ratio
 
 
 LIGHT_REMESH_MAX_ADDED_OUTSIDE = 2e-4

@@ -21,6 +21,13 @@ def resolve_device(name: str) -> torch.device:
     return torch.device(name)
 
 
+def accelerator(device: str | None) -> str | None:
+    """`device` where it is an accelerator, None for the CPU: the geometry stages ported to
+    torch for the GPU (`mesh_torch` and its users) stay in numpy and scipy on the CPU, where
+    they are as fast and stay as they were measured."""
+    return None if device in (None, "cpu") else device
+
+
 def on_device(array: NDArray, device: str) -> torch.Tensor:
     """A numpy array as a tensor on `device`, its dtype kept."""
     return torch.from_numpy(np.ascontiguousarray(array)).to(device)

@@ -196,7 +196,7 @@ def vertex_gains(model, features: NDArray[np.float32], device: str = "cpu"
 def learned_twicing(mesh: TriangleMesh, selector: bytes, device: str | None = None
                     ) -> TriangleMesh:
     """The mesh as the selector's (safetensors bytes) per-vertex blend of its twicings, the
-    smoothing steps on `device` (`twicing_blend.field_ops`; None: scipy)."""
+    smoothing steps on `device` (`twicing_blend.twicing_candidates`; None: scipy)."""
     return apply_selector(load_selector(selector), mesh, device)
 
 
@@ -227,6 +227,7 @@ def presmoothed(
     mesh."""
     from pipeline.enhance.baselines import presmooth
     from pipeline.enhance.bounded_noise import bounded_noise_refine
+    from pipeline.enhance.device import accelerator
 
     if iterations == 0:
         return mesh
@@ -234,7 +235,9 @@ def presmoothed(
         smooth = learned_twicing(mesh, selector, device)
     else:
         smooth = presmooth(mesh, iterations, passes, adaptive)
-    return smooth if bounded is None else bounded_noise_refine(mesh, smooth, bounded)
+    if bounded is None:
+        return smooth
+    return bounded_noise_refine(mesh, smooth, bounded, accelerator(device))
 
 
 def model_bytes(config: EnhanceConfig, name: str) -> bytes:

@@ -13,7 +13,7 @@ from pipeline.enhance.baselines import mean_operator
 from pipeline.mesh import TriangleMesh, mean_edge_length_m, vertex_normals
 
 
-def noise_to_edge_ratio(mesh: TriangleMesh) -> float:
+def noise_to_edge_ratio(mesh: TriangleMesh, device: str | None = None) -> float:
     """Robust vertex noise along the normals, as a fraction of the mean edge length.
 
     Each vertex's umbrella offset (mean of its neighbours minus itself) along its normal holds
@@ -21,10 +21,36 @@ def noise_to_edge_ratio(mesh: TriangleMesh) -> float:
     offset minus its neighbours' mean keeps the noise. The median of its magnitude over the
     mean edge length is scale-free: about 0.01 on a clean or well-reconstructed mesh, 0.11 for
     uniform noise along normals of amplitude 0.2 edge lengths, about 0.5 at two edge lengths
-    (where it saturates).
+    (where it saturates). On a torch `device` where given (`noise_to_edge_ratio_torch`), else
+    in numpy.
     """
+    if device is not None:
+        return noise_to_edge_ratio_torch(mesh, device)
     m = mean_operator(mesh.faces, mesh.vertex_count)
     normals = vertex_normals(mesh.vertices_m, mesh.faces)
     umbrella_m = np.sum((m @ mesh.vertices_m - mesh.vertices_m) * normals, axis=1)
     rough_m = umbrella_m - m @ umbrella_m
     return float(np.median(np.abs(rough_m)) / mean_edge_length_m(mesh))
+
+
+def noise_to_edge_ratio_torch(mesh: TriangleMesh, device: str) -> float:
+    """`noise_to_edge_ratio` in torch on `device` (float64)."""
+    import torch
+
+    from pipeline.enhance import mesh_torch
+    from pipeline.enhance.device import on_device
+
+    vertices_m = on_device(mesh.vertices_m, device)
+    faces = on_device(mesh.faces.astype(np.int64), device)
+    m = mesh_torch.mean_operator(mesh_torch.neighbour_pattern(faces, mesh.vertex_count))
+    normals = mesh_torch.vertex_normals(vertices_m, faces).double()
+    umbrella_m = torch.sum((m @ vertices_m - vertices_m) * normals, dim=1)
+    rough_m = umbrella_m - m @ umbrella_m
+    return float(_median(rough_m.abs())) / mesh_torch.mean_edge_length_m(vertices_m, faces)
+
+
+def _median(values):
+    """numpy's median: the mean of the two middle values of an even count."""
+    ordered = values.sort().values
+    middle = (len(ordered) - 1) // 2
+    return 0.5 * (ordered[middle] + ordered[len(ordered) // 2])

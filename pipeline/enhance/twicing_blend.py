@@ -63,8 +63,9 @@ class TwicingCandidates:
 
 @dataclass(frozen=True)
 class FieldOps:
-    """Where the smoothing steps, nearly all of the work, run on (V, C) per-vertex fields:
-    one smoothing step, one neighbour average, and how fields go there and come back."""
+    """Where the smoothing steps, nearly all of the work, and the features run on (V, C)
+    per-vertex fields: scipy and numpy on the host (`field_ops`), or torch on a device
+    (`twicing_torch.torch_field_ops`)."""
 
     step: Callable[[Any], Any]
     """y + lam (M y - y - c), lam = 0.5, with M the mean operator and c a fixed offset per
@@ -77,31 +78,30 @@ class FieldOps:
     to_field: Callable[[NDArray], Any]
     """A field there, its dtype kept."""
     to_numpy: Callable[[Any], NDArray]
+    mean: Callable[[Any], Any]
+    """M y, float64."""
+    normals: Callable[[Any], Any]
+    """(V, 3) float64 unit vertex normals of positions y on the mesh's faces, rounded to
+    float32 as `pipeline.mesh.vertex_normals`."""
+    columns: Callable[[list[Any]], Any]
+    """(V, C) float32 of C (V,) columns."""
 
 
-def field_ops(mean_op: sp.csr_matrix, device: str | None,
+def field_ops(mean_op: sp.csr_matrix, faces: NDArray[np.int32],
               offset_m: NDArray[np.float64] | None = None) -> FieldOps:
-    """scipy on the host (None), or torch on `device` ('cpu', 'cuda'), where a step is one
-    sparse product with (I + M) / 2: torch runs it on all cores, or the GPU. `offset_m`
-    (V, 3) is the c that steps leave out (`boundary.boundary_offset`); None: zero."""
+    """scipy and numpy on the host; `offset_m` (V, 3) is the c that steps leave out
+    (`boundary.boundary_offset`); None: zero."""
     mean32 = mean_op.astype(np.float32)
-    if device is None:
-        step = _leaving_out(lambda y: y + 0.5 * (mean_op @ y - y), offset_m, _same)
-        return FieldOps(step, lambda y: mean32 @ y, _same, _same)
-    from pipeline.enhance.device import csr_on_device, on_device
-
-    def to_torch(x: NDArray) -> Any:
-        return on_device(x, device)
-
-    half_step = csr_on_device((0.5 * sp.identity(mean_op.shape[0]) + 0.5 * mean_op).tocsr(),
-                              device)
-    average = csr_on_device(mean32, device)
-    step = _leaving_out(lambda y: half_step @ y, offset_m, to_torch)
-    return FieldOps(step, lambda y: average @ y, to_torch, lambda t: t.cpu().numpy())
+    return FieldOps(
+        step=leaving_out(lambda y: y + 0.5 * (mean_op @ y - y), offset_m, _same),
+        average=lambda y: mean32 @ y, to_field=_same, to_numpy=_same,
+        mean=lambda y: mean_op @ y,
+        normals=lambda y: vertex_normals(y, faces).astype(np.float64),
+        columns=lambda columns: np.stack(columns, axis=1).astype(np.float32))
 
 
-def _leaving_out(step: Callable[[Any], Any], offset_m: NDArray[np.float64] | None,
-                 to_field: Callable[[NDArray], Any]) -> Callable[[Any], Any]:
+def leaving_out(step: Callable[[Any], Any], offset_m: NDArray[np.float64] | None,
+                to_field: Callable[[NDArray], Any]) -> Callable[[Any], Any]:
     """`step` followed by subtracting 0.5 c, c laid out in each whole (x, y, z) triple of a
     field's columns (none in a trailing column), made once per field width; `step` itself
     where there is no c. Only the rows where c is not zero (the boundary's) are touched:
@@ -134,7 +134,8 @@ def _same(x: Any) -> Any:
 def twicing_candidates(
     mesh: TriangleMesh, config: TwicingBlendConfig, device: str | None = None
 ) -> TwicingCandidates:
-    """The candidates and their features; the smoothing steps on `device` (`field_ops`).
+    """The candidates and their features, in scipy and numpy on the host (None), or in torch
+    on `device` (`twicing_torch`).
 
     Per vertex, along the pilot's normal and divided by the estimated noise std: the squared
     residual of the mesh about the pilot, the pilot's curvature (signed and absolute, as the
@@ -142,44 +143,43 @@ def twicing_candidates(
     (signed and squared: the bias it would add) and the squared distance of its result from
     the pilot. Each is given at every neighbourhood size in `feature_rings`.
     """
-    m = mean_operator(mesh.faces, mesh.vertex_count)
-    offset_m = boundary_offset(mesh, m, config.boundary_pilot_iterations)
-    ops = field_ops(m, device, offset_m)
-    x = mesh.vertices_m
+    if device is None:
+        m = mean_operator(mesh.faces, mesh.vertex_count)
+        ops = field_ops(m, mesh.faces,
+                        boundary_offset(mesh, m, config.boundary_pilot_iterations))
+    else:
+        from pipeline.enhance.twicing_torch import torch_field_ops
+
+        ops = torch_field_ops(mesh, config.boundary_pilot_iterations, device)
+    x = ops.to_field(mesh.vertices_m)
     # Every field below is a polynomial in the smoothing step applied to x, the pilot's
     # twicings included (`_step_polynomials`), so one run of steps on x gives them all.
     pilot_polynomial = _twicing_polynomial(config.pilot_iterations, config.passes)
     twicings = [_twicing_polynomial(k, config.passes) for k in config.iterations]
     pilot_twicings = [_product(t, pilot_polynomial) for t in twicings]
-    fields = _step_polynomials(ops.step, ops.to_field(x),
-                               [pilot_polynomial, *twicings, *pilot_twicings])
-    pilot = ops.to_numpy(fields[0])
-    candidate_fields = fields[1:1 + len(twicings)]
+    fields = _step_polynomials(ops.step, x, [pilot_polynomial, *twicings, *pilot_twicings])
+    pilot = fields[0]
+    candidates = fields[1:1 + len(twicings)]
     pilot_twiced_fields = fields[1 + len(twicings):]
     # A fixed probe, stepped on its own: the result depends on the mesh alone.
-    probe = np.random.default_rng(0).normal(size=(len(x), 1))
-    (probe_pilot,) = _step_polynomials(ops.step, ops.to_field(probe), [pilot_polynomial])
-    normals = vertex_normals(pilot, mesh.faces).astype(np.float64)
-    residual = np.sum((x - pilot) * normals, axis=1)
+    probe = ops.to_field(np.random.default_rng(0).normal(size=(mesh.vertex_count, 1)))
+    (probe_pilot,) = _step_polynomials(ops.step, probe, [pilot_polynomial])
+    normals = ops.normals(pilot)
+    residual = ((x - pilot) * normals).sum(1)
     # The residual's variance is the noise's times the share the pilot removes of it.
-    removed = float(np.mean((probe - ops.to_numpy(probe_pilot)) ** 2))
-    noise_std_m = float(np.sqrt(np.mean(residual**2) / removed))
-    columns = [
-        (residual / noise_std_m) ** 2,
-        np.sum((m @ pilot - pilot) * normals, axis=1) / noise_std_m,
-    ]
-    columns.append(np.abs(columns[-1]))
-    candidates = [ops.to_numpy(c) for c in candidate_fields]
-    for candidate, pilot_twiced in zip(candidates, map(ops.to_numpy, pilot_twiced_fields),
-                                       strict=True):
-        pilot_move = np.sum((pilot_twiced - pilot) * normals, axis=1) / noise_std_m
-        from_pilot = np.sum((candidate - pilot) * normals, axis=1) / noise_std_m
+    removed = float(((probe - probe_pilot) ** 2).mean())
+    noise_std_m = float(np.sqrt(float((residual**2).mean()) / removed))
+    columns = [(residual / noise_std_m) ** 2,
+               ((ops.mean(pilot) - pilot) * normals).sum(1) / noise_std_m]
+    columns.append(abs(columns[-1]))
+    for candidate, pilot_twiced in zip(candidates, pilot_twiced_fields, strict=True):
+        pilot_move = ((pilot_twiced - pilot) * normals).sum(1) / noise_std_m
+        from_pilot = ((candidate - pilot) * normals).sum(1) / noise_std_m
         columns += [pilot_move**2, pilot_move, from_pilot**2]
-    scales = _multiscale(ops.average,
-                         ops.to_field(np.stack(columns, axis=1).astype(np.float32)),
-                         config.feature_rings)
+    scales = _multiscale(ops.average, ops.columns(columns), config.feature_rings)
     features = np.concatenate([ops.to_numpy(a) for a in scales], axis=1)
-    return TwicingCandidates(np.stack(candidates), features, noise_std_m)
+    return TwicingCandidates(np.stack([ops.to_numpy(c) for c in candidates]), features,
+                             noise_std_m)
 
 
 def _twicing_polynomial(count: int, passes: int) -> dict[int, int]:

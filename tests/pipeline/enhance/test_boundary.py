@@ -137,7 +137,7 @@ def test_a_twicing_of_the_pilot_is_the_product_polynomial_of_the_offset_steps(n,
     the boundary left out each step is affine, and twicings are affine combinations."""
     mesh = noisy_along_normals(grid(n), 0.003, np.random.default_rng(seed))
     m = mean_operator(mesh.faces, mesh.vertex_count)
-    ops = field_ops(m, None, _offset(mesh))
+    ops = field_ops(m, mesh.faces, _offset(mesh))
     p, t = _twicing_polynomial(pilot, 2), _twicing_polynomial(k, 2)
     (pilot_m,) = _step_polynomials(ops.step, mesh.vertices_m, [p])
     (stepped,) = _step_polynomials(ops.step, pilot_m, [t])

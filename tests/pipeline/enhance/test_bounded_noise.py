@@ -16,6 +16,7 @@ from pipeline.enhance.bounded_noise import (
 )
 from pipeline.enhance.config import validate_config
 from pipeline.enhance.data import noisy_along_normals
+from pipeline.mesh import TriangleMesh
 from tests.pipeline.enhance.conftest import radial_rms_m, sphere
 from tests.pipeline.enhance.test_boundary import grid
 
@@ -122,3 +123,23 @@ def test_a_noisy_sphere_comes_back_closer_than_its_smoothing(seed):
 def test_a_negative_ring_count_is_named():
     with pytest.raises(ValueError, match="bounded_noise"):
         validate_config(EnhanceConfig(bounded_noise=BoundedNoiseConfig(rings=-1)))
+
+
+@pytest.mark.parametrize("open_boundary", [False, True])
+def test_the_torch_refinement_is_numpys(open_boundary):
+    """The GPU path's port (`bounded_noise_torch`), run on the CPU, moves the vertices as
+    numpy and scipy do, to rounding."""
+    from tests.pipeline.enhance.test_boundary import open_sphere
+
+    truth = sphere(0.5, 40)
+    if open_boundary:  # the cut sphere without the cap's vertices, which no face uses
+        cut = open_sphere()
+        used, faces = np.unique(cut.faces, return_inverse=True)
+        truth = TriangleMesh(cut.vertices_m[used], faces.reshape(-1, 3).astype(np.int32))
+    noisy = noisy_along_normals(truth, 0.01, np.random.default_rng(3))
+    smooth = twicing_smooth(noisy, 20)
+    config = BoundedNoiseConfig()
+    host = bounded_noise_refine(noisy, smooth, config)
+    assert not np.allclose(host.vertices_m, smooth.vertices_m)
+    torch_cpu = bounded_noise_refine(noisy, smooth, config, "cpu")
+    np.testing.assert_allclose(torch_cpu.vertices_m, host.vertices_m, rtol=0, atol=1e-12)

@@ -4,6 +4,7 @@ growing with the noise."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -48,3 +49,11 @@ def test_the_documented_levels() -> None:
     # Uniform noise of amplitude 0.2 edge lengths: about 0.11 (the gate's neighbourhood).
     assert 0.08 < noise_to_edge_ratio(_noisy(0.2, 0)) < 0.14
     assert noise_to_edge_ratio(_noisy(2.0, 0)) > 0.4
+
+
+@settings(max_examples=10, deadline=None)
+@given(amplitude_edges=st.floats(0.0, 2.0), seed=st.integers(0, 1000))
+def test_the_torch_estimate_is_numpys(amplitude_edges: float, seed: int) -> None:
+    mesh = _noisy(amplitude_edges, seed)
+    assert noise_to_edge_ratio(mesh, "cpu") == pytest.approx(noise_to_edge_ratio(mesh),
+                                                              rel=1e-9)

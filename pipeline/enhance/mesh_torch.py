@@ -1,0 +1,82 @@
+"""Mesh quantities in torch, on the enhancement's device: what `pipeline.mesh` and
+`baselines.mean_operator` give in numpy and scipy, for the stages that run on a GPU, where
+the host's share of a mesh's enhancement is what keeps it above a second."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from pipeline.enhance.device import csr_tensor
+
+
+def vertex_normals(vertices_m: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+    """(V, 3) float32 area-weighted unit vertex normals of (V, 3) vertices and (F, 3) int64
+    faces (zero where the faces about a vertex cancel): float32, as `pipeline.mesh`'s, so
+    both paths agree to its rounding."""
+    tri = vertices_m[faces]
+    weighted = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    normals = torch.zeros_like(vertices_m)
+    for corner in range(3):
+        normals.index_add_(0, faces[:, corner], weighted)
+    length = torch.linalg.vector_norm(normals, dim=1, keepdim=True)
+    return torch.where(length > 0, normals / length.clamp_min(1e-300), 0.0).float()
+
+
+def mean_edge_length_m(vertices_m: torch.Tensor, faces: torch.Tensor) -> float:
+    """Mean length of the faces' edges (an interior edge counted once per face), metres."""
+    corners = vertices_m[faces]
+    return float(torch.linalg.vector_norm(corners - corners.roll(-1, dims=1), dim=2).mean())
+
+
+@dataclass(frozen=True)
+class NeighbourPattern:
+    """Each vertex's neighbours and itself, in row-major order: the entries of every
+    operator `mean_operator` makes, built once from the faces (the sort is most of it)."""
+
+    rows: torch.Tensor
+    """(E,) int64 row of each entry, ascending."""
+    columns: torch.Tensor
+    """(E,) int64 column of each entry, ascending within a row."""
+    neighbour_count: torch.Tensor
+    """(V,) int64 neighbours of each vertex (0: isolated)."""
+
+    @property
+    def vertex_count(self) -> int:
+        return len(self.neighbour_count)
+
+
+def neighbour_pattern(faces: torch.Tensor, vertex_count: int) -> NeighbourPattern:
+    """The `NeighbourPattern` of (F, 3) int64 faces on their device."""
+    ends = [faces.roll(-shift, dims=1).reshape(-1) for shift in (0, 1)]
+    diagonal = torch.arange(vertex_count, device=faces.device) * (vertex_count + 1)
+    keys = torch.cat([ends[0] * vertex_count + ends[1], ends[1] * vertex_count + ends[0],
+                      diagonal])
+    keys = torch.unique(keys)  # sorted: row-major, each edge once each way
+    rows, columns = keys // vertex_count, keys % vertex_count
+    count = torch.bincount(rows, minlength=vertex_count) - 1
+    return NeighbourPattern(rows, columns, count)
+
+
+def mean_operator(pattern: NeighbourPattern, self_weight: float = 0.0,
+                  dtype: torch.dtype = torch.float64) -> torch.Tensor:
+    """(V, V) sparse CSR (1 - w) M + w I, M the row-normalised adjacency (row i averages i's
+    neighbours; an isolated vertex: itself), w `self_weight`; columns sorted; values computed
+    in float64, then `dtype`. w = 0 is `baselines.mean_operator` (no entry on the diagonal
+    but an isolated vertex's), w = 0.5 one Laplacian step (`baselines.twice_field`)."""
+    rows, columns, count = pattern.rows, pattern.columns, pattern.neighbour_count
+    lonely = (count == 0).to(torch.float64)
+    on_diagonal = rows == columns
+    if self_weight == 0.0:
+        kept = ~on_diagonal | (count[rows] == 0)
+        rows, columns, on_diagonal = rows[kept], columns[kept], on_diagonal[kept]
+    neighbour_weight = (1.0 - self_weight) / count.clamp_min(1).to(torch.float64)
+    diagonal = self_weight + (1.0 - self_weight) * lonely
+    values = torch.where(on_diagonal, diagonal[rows], neighbour_weight[rows])
+    row_starts = torch.zeros(pattern.vertex_count + 1, dtype=torch.int64, device=rows.device)
+    row_starts[1:] = torch.cumsum(torch.bincount(rows, minlength=pattern.vertex_count), 0)
+    # int32 indices where they fit: torch's CPU kernel for int64 ones ran 20 times slower.
+    index = torch.int32 if len(rows) < 2**31 - 1 else torch.int64
+    return csr_tensor(row_starts.to(index), columns.to(index), values.to(dtype),
+                      (pattern.vertex_count, pattern.vertex_count))
