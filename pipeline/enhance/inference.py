@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -46,6 +46,21 @@ def _tuples(d: dict) -> dict:
     return {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
 
 
+Module = TypeVar("Module", bound="torch.nn.Module")
+
+
+def _with_weights(make: Callable[[], Module], state: dict[str, torch.Tensor]) -> Module:
+    """The module `make` builds, its parameters and buffers `state`'s tensors themselves, in
+    eval mode. Built on the meta device, so no initial weights are drawn only to be
+    overwritten (the LDM's networks: most of their load time)."""
+    import torch
+
+    with torch.device("meta"):
+        module = make()
+    module.load_state_dict(state, assign=True)  # strict: every tensor must be in `state`
+    return module.eval()
+
+
 def load_regressor(data: bytes):
     """A `ResidualUNet`, or a `RefinedRegressor` where the metadata names the regressor it
     refines (`regressor_to_bytes`)."""
@@ -53,11 +68,12 @@ def load_regressor(data: bytes):
 
     state, cfg = weights_from_bytes(data)
     refines_cfg = cfg.pop("refines_regressor", None)
-    second = ResidualUNet(RegressorConfig(**_tuples(cfg)))
-    model = second if refines_cfg is None else RefinedRegressor(
-        ResidualUNet(RegressorConfig(**_tuples(refines_cfg))), second)
-    model.load_state_dict(state)
-    return model.eval()
+    def make():
+        second = ResidualUNet(RegressorConfig(**_tuples(cfg)))
+        return second if refines_cfg is None else RefinedRegressor(
+            ResidualUNet(RegressorConfig(**_tuples(refines_cfg))), second)
+
+    return _with_weights(make, state)
 
 
 def regressor_to_bytes(model, half: bool = False) -> bytes:
@@ -78,9 +94,7 @@ def load_vae(data: bytes):
     from pipeline.enhance.models.vae import DepthVAE, VAEConfig
 
     state, cfg = weights_from_bytes(data)
-    vae = DepthVAE(VAEConfig(**_tuples(cfg)))
-    vae.load_state_dict(state)
-    return vae.eval()
+    return _with_weights(lambda: DepthVAE(VAEConfig(**_tuples(cfg))), state)
 
 
 def load_ldm(vae_data: bytes, ldm_data: bytes):
@@ -95,15 +109,13 @@ def load_ldm(vae_data: bytes, ldm_data: bytes):
     ldm_state, meta = weights_from_bytes(ldm_data)
     refines_cfg = meta.pop("refines_regressor", None)
     cfg = UNetConfig(**_tuples(meta))
-    unet, control = LatentUNet(cfg), ControlNet(cfg)
-    unet.load_state_dict(_prefixed(ldm_state, "unet."))
-    control.load_state_dict(_prefixed(ldm_state, "controlnet."))
+    unet = _with_weights(lambda: LatentUNet(cfg), _prefixed(ldm_state, "unet."))
+    control = _with_weights(lambda: ControlNet(cfg), _prefixed(ldm_state, "controlnet."))
     refines = None
     if refines_cfg is not None:
-        refines = ResidualUNet(RegressorConfig(**_tuples(refines_cfg)))
-        refines.load_state_dict(_prefixed(ldm_state, "refines."))
-        refines.eval()
-    return LDMModels(vae.eval(), unet.eval(), control.eval(), refines)
+        refines = _with_weights(lambda: ResidualUNet(RegressorConfig(**_tuples(refines_cfg))),
+                                _prefixed(ldm_state, "refines."))
+    return LDMModels(vae, unet, control, refines)
 
 
 def ldm_to_bytes(models, unet_config: dict, half: bool = False) -> bytes:
@@ -135,10 +147,12 @@ def load_selector(data: bytes):
 
     state, cfg = weights_from_bytes(data)
     cfg.pop("member_sha256", None)
-    members = [TwicingSelector(SelectorConfig(**_tuples(c))) for c in cfg.get("members", [cfg])]
-    model = members[0] if "members" not in cfg else SelectorEnsemble(members)
-    model.load_state_dict(state)
-    return model.eval()
+    def make():
+        members = [TwicingSelector(SelectorConfig(**_tuples(c)))
+                   for c in cfg.get("members", [cfg])]
+        return members[0] if "members" not in cfg else SelectorEnsemble(members)
+
+    return _with_weights(make, state)
 
 
 def selector_ensemble_to_bytes(selectors: list[bytes], half: bool = False) -> bytes:
@@ -161,9 +175,7 @@ def load_vertex_gain(data: bytes):
     from pipeline.enhance.models.vertex_gain import VertexGainConfig, VertexGainNet
 
     state, cfg = weights_from_bytes(data)
-    model = VertexGainNet(VertexGainConfig(**cfg))
-    model.load_state_dict(state)
-    return model.eval()
+    return _with_weights(lambda: VertexGainNet(VertexGainConfig(**cfg)), state)
 
 
 ROW_CHUNK = 4096
