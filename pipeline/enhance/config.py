@@ -211,9 +211,10 @@ def enhance_mesh(
     enhanced = enhance_renders(inputs.base_renders, inputs.renders,
                                replace(config, correction_gain=1.0) if learned else config)
     done("network")
-    steps = view_steps(inputs.base, inputs.base_renders, enhanced, inputs.update)
+    steps = view_steps(inputs.base, inputs.base_renders, enhanced, inputs.update,
+                       accelerator(device))
     gain = learned_vertex_gain(ordered, steps, config, device) if learned else None
-    result, _ = apply_view_steps(inputs.base, steps, inputs.update, gain)
+    result, _ = apply_view_steps(inputs.base, steps, inputs.update, gain, accelerator(device))
     result = normal_filter(result, config.normal_filter, device)
     done("update")
     # The light remesh makes connectivity of its own, and in the spatial order it runs faster

@@ -24,6 +24,14 @@ def vertex_normals(vertices_m: torch.Tensor, faces: torch.Tensor) -> torch.Tenso
     return torch.where(length > 0, normals / length.clamp_min(1e-300), 0.0).float()
 
 
+def face_normals(vertices_m: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+    """(F, 3) unit face normals (zero for degenerate faces), as `pipeline.mesh`'s."""
+    tri = vertices_m[faces]
+    normals = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    length = torch.linalg.vector_norm(normals, dim=1, keepdim=True)
+    return torch.where(length > 0, normals / length.clamp_min(1e-300), 0.0)
+
+
 def mean_edge_length_m(vertices_m: torch.Tensor, faces: torch.Tensor) -> float:
     """Mean length of the faces' edges (an interior edge counted once per face), metres."""
     corners = vertices_m[faces]

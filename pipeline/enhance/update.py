@@ -98,14 +98,20 @@ def view_steps(
     renders: DepthRenders,
     enhanced_depth_n: NDArray[np.float32],
     config: UpdateConfig,
+    device: str | None = None,
 ) -> ViewSteps:
     """Each view's step for each vertex toward the enhanced depth (`enhanced_depth_n`, (N, H, W)
-    normalised depth of the views of `renders`, the mesh's own renders)."""
+    normalised depth of the views of `renders`, the mesh's own renders). In torch float64 on
+    `device` ("cpu", "cuda") where given, else in numpy."""
     views = renders.views
     if enhanced_depth_n.shape != renders.depth_n.shape:
         raise ValueError(
             f"enhanced_depth_n has shape {enhanced_depth_n.shape}, renders {renders.depth_n.shape}"
         )
+    if device is not None:
+        from pipeline.enhance.update_torch import view_steps_on
+
+        return view_steps_on(mesh, renders, enhanced_depth_n, config, device)
     v = mesh.vertices_m
     mean_op = mean_operator(mesh.faces, mesh.vertex_count)
     normals = vertex_normals(v, mesh.faces).astype(np.float64)
@@ -151,14 +157,15 @@ def update_vertices(
     enhanced_depth_n: NDArray[np.float32],
     config: UpdateConfig,
     vertex_gain: NDArray[np.float64] | None = None,
+    device: str | None = None,
 ) -> tuple[TriangleMesh, NDArray[np.bool_]]:
     """The mesh with vertices moved to the enhanced depth, and the (V,) mask of seen vertices.
 
     `renders` are the mesh's own renders (for the visibility depth test); `enhanced_depth_n`
-    (N, H, W) the enhanced normalised depth of the same views.
+    (N, H, W) the enhanced normalised depth of the same views; `device` as `view_steps`'.
     """
-    return apply_view_steps(mesh, view_steps(mesh, renders, enhanced_depth_n, config), config,
-                            vertex_gain)
+    steps = view_steps(mesh, renders, enhanced_depth_n, config, device)
+    return apply_view_steps(mesh, steps, config, vertex_gain, device)
 
 
 def apply_view_steps(
@@ -166,10 +173,15 @@ def apply_view_steps(
     steps: ViewSteps,
     config: UpdateConfig,
     vertex_gain: NDArray[np.float64] | None = None,
+    device: str | None = None,
 ) -> tuple[TriangleMesh, NDArray[np.bool_]]:
     """The mesh with each seen vertex moved by the weighted average of its views' steps (times
     its `vertex_gain`, (V,), when given), capped; the unseen smoothed from the seen; folds put
-    back. Also the (V,) mask of seen vertices."""
+    back. Also the (V,) mask of seen vertices. In torch float64 on `device` where given."""
+    if device is not None:
+        from pipeline.enhance.update_torch import apply_view_steps_on
+
+        return apply_view_steps_on(mesh, steps, config, vertex_gain, device)
     v = mesh.vertices_m
     weight = steps.weights.sum(axis=0)
     shift = (steps.weights * steps.steps_m).T @ steps.forwards

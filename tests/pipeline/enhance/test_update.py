@@ -141,3 +141,112 @@ def test_a_uniform_vertex_gain_moves_as_far_as_that_share_of_the_change(noisy_sp
     by_gain, _ = apply_view_steps(noisy, steps, cfg, 0.3 * ones)
     assert np.allclose(by_gain.vertices_m, by_depth.vertices_m, atol=1e-9)
     assert np.abs(by_gain.vertices_m - noisy.vertices_m)[seen].max() > 1e-4
+
+
+# The torch path (`device`) against the numpy one. Both work in float64, so they agree to
+# rounding; a (view, vertex) pair whose visibility sits on a rounding tie (a depth test or
+# the facing cut exactly at its bound) could flip between them, which is why the masks may
+# differ in at most 0.01 % of pairs (none on these meshes, nor on the bunny).
+
+MAX_FLIPPED_SHARE = 1e-4
+
+
+def _close_where_both_see(numpy_steps, torch_steps):
+    both = (numpy_steps.weights > 0) == (torch_steps.weights > 0)
+    assert 1 - both.mean() <= MAX_FLIPPED_SHARE
+    for field in ("steps_m", "weights"):
+        a, b = getattr(numpy_steps, field), getattr(torch_steps, field)
+        assert np.abs(a - b)[both].max() < 1e-9, field
+    assert np.abs(numpy_steps.normals - torch_steps.normals).max() < 1e-9
+    assert abs(numpy_steps.mean_op - torch_steps.mean_op).max() == 0
+
+
+@pytest.mark.parametrize("follow_change", [False, True])
+def test_torch_view_steps_are_the_numpy_ones(noisy_sphere, follow_change):
+    from pipeline.enhance.update import view_steps
+
+    _, noisy = noisy_sphere
+    views = make_views(noisy.vertices_m, view_directions(6), 128)
+    r = render_depth(noisy, views)
+    change = np.random.default_rng(1).normal(scale=0.003 / views.depth_range_m,
+                                             size=r.depth_n.shape)
+    enhanced = np.where(r.valid, r.depth_n + change, r.depth_n).astype(np.float32)
+    cfg = UpdateConfig(follow_change=follow_change)
+    numpy_steps = view_steps(noisy, r, enhanced, cfg)
+    torch_steps = view_steps(noisy, r, enhanced, cfg, "cpu")
+    assert (numpy_steps.weights > 0).mean() > 0.3
+    _close_where_both_see(numpy_steps, torch_steps)
+    assert torch_steps.cap_m == numpy_steps.cap_m
+    assert np.array_equal(torch_steps.forwards, numpy_steps.forwards)
+
+
+@pytest.mark.parametrize("follow_moves", [False, True])
+def test_torch_update_moves_the_vertices_as_numpy_does(follow_moves):
+    """Two views of a noisy sphere leave its back unseen (smoothed from the seen), a large
+    correction folds faces (put back), and a vertex gain scales the moves."""
+    from pipeline.enhance.data import noisy_along_normals
+    from pipeline.enhance.update import apply_view_steps, view_steps
+
+    noisy = noisy_along_normals(sphere(0.5, 40), 0.01, np.random.default_rng(2))
+    views = make_views(noisy.vertices_m, view_directions(2), 96)
+    r = render_depth(noisy, views)
+    rng = np.random.default_rng(4)
+    change = rng.normal(scale=0.02 / views.depth_range_m, size=r.depth_n.shape)
+    enhanced = np.where(r.valid, r.depth_n + change, r.depth_n).astype(np.float32)
+    cfg = UpdateConfig(unseen_follow_moves=follow_moves, max_step_fraction=0.1)
+    numpy_steps = view_steps(noisy, r, enhanced, cfg)
+    gain = rng.uniform(0.5, 1.5, noisy.vertex_count)
+    moved, seen = apply_view_steps(noisy, numpy_steps, cfg, gain)
+    moved_torch, seen_torch = apply_view_steps(noisy, numpy_steps, cfg, gain, "cpu")
+    assert 0.2 < (~seen).mean() < 0.8
+    put_back = np.all(moved.vertices_m == noisy.vertices_m, axis=1) & seen
+    assert put_back.sum() > 0  # the fold check had work to do
+    assert np.array_equal(seen_torch, seen)
+    assert np.abs(moved_torch.vertices_m - moved.vertices_m).max() < 1e-9
+    assert np.array_equal(moved_torch.faces, moved.faces)
+    both, both_seen = update_vertices(noisy, r, enhanced, cfg, gain, "cpu")
+    assert np.array_equal(both_seen, seen)
+    assert np.abs(both.vertices_m - moved.vertices_m).max() < 1e-9
+
+
+def test_torch_bilinear_is_the_numpy_one():
+    """Random images with holes and steep steps, looked up at random points, at the borders
+    and at exact half pixels (where rounding to the nearest must pick the even one)."""
+    import torch
+
+    from pipeline.enhance.update import _bilinear
+    from pipeline.enhance.update_torch import Pixels, bilinear
+
+    rng = np.random.default_rng(5)
+    images = rng.uniform(0, 1, (3, 16, 16)).astype(np.float32)
+    valid = rng.uniform(size=images.shape) > 0.2
+    count = 2000
+    view = rng.integers(0, 3, count)
+    cols = np.concatenate([rng.uniform(0, 15, count - 40), np.full(20, 15.0),
+                           rng.integers(0, 15, 20) + 0.5])
+    rows = np.concatenate([rng.uniform(0, 15, count - 40), rng.integers(0, 15, 20) + 0.5,
+                           np.zeros(20)])
+    spread = rng.uniform(0, 1, count)
+    pixels = Pixels(torch.from_numpy(view), torch.from_numpy(cols), torch.from_numpy(rows), 16)
+    values, ok = bilinear(torch.from_numpy(images), torch.from_numpy(valid), pixels,
+                          torch.from_numpy(spread))
+    for k in range(3):
+        at = view == k
+        expected, expected_ok = _bilinear(images[k], valid[k], cols[at], rows[at], spread[at])
+        assert np.array_equal(values.numpy()[at], expected)
+        assert np.array_equal(ok.numpy()[at], expected_ok)
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), scale_m=st.floats(0.001, 0.2))
+def test_torch_unfolded_is_the_numpy_one(seed, scale_m):
+    import torch
+
+    from pipeline.enhance.update_torch import unfolded as unfolded_torch
+
+    mesh = sphere(0.5, 12)
+    before = mesh.vertices_m
+    after = before + np.random.default_rng(seed).normal(scale=scale_m, size=before.shape)
+    out = unfolded_torch(torch.from_numpy(before), torch.from_numpy(after),
+                         torch.from_numpy(mesh.faces.astype(np.int64)))
+    assert np.array_equal(out.numpy(), unfolded(before, after, mesh.faces))
