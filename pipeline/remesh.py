@@ -12,35 +12,26 @@ enforced by :mod:`pipeline.angle_cleanup`.
 from __future__ import annotations
 
 import os
-import shutil
-import subprocess
-import sys
-import tempfile
-import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 
 from pipeline.angle_cleanup import enforce_angles
 from pipeline.boundary_split import split_boundary_edges
 from pipeline.mesh import TriangleMesh
-from pipeline.mesh_order import reordered, spatial_order
-from pipeline.mesh_repair import (
-    edge_table,
-    faces_per_edge,
-    repair,
-    triangle_angles_deg,
+from pipeline.mesh_order import in_spatial_order
+from pipeline.mesh_repair import repair, triangle_angles_deg
+from pipeline.remesh_kernel import (
+    Faces,
+    FloatArray,
+    KernelChild,
+    KernelOutcome,
+    boundary_split_kernel,
+    start_isolated,
 )
-
-FloatArray = NDArray[np.float64]
-Faces = NDArray[np.int32]
-KernelOutcome = tuple[tuple[FloatArray, Faces] | None, str | None]
-"""The kernel's (vertices, faces), or None and why it failed."""
 
 
 @dataclass(frozen=True)
@@ -97,105 +88,6 @@ class RemeshConfig:
             raise ValueError("remesh: kernel_processes must be None or >= 1")
 
 
-def _kernel(vertices_m: FloatArray, faces: Faces, edge_m: float, iterations: int
-            ) -> tuple[FloatArray, Faces]:
-    """gpytoolbox's ``remesh_botsch`` (boundary vertices held, projection on), called past its
-    Python wrapper, whose input checks (row-wise sorts of every half-edge) took 1.8 s of its
-    2.9 s on a 100 k-vertex mesh; the same checks here take a tenth of that. The wrapper's
-    contract is kept: the held vertices (the boundary's, ascending) come first. A test holds
-    the two equal."""
-    from gpytoolbox_bindings import _remesh_botsch_cpp_impl
-
-    v = np.asarray(vertices_m, np.float64)
-    f = np.asarray(faces, np.int32)
-    edges, opposite = edge_table(f)
-    uses = faces_per_edge(opposite, len(edges))
-    if (uses > 2).any():
-        raise ValueError("Input mesh is non-manifold.")
-    held = np.unique(edges[uses == 1])
-    if len(held):
-        order = np.concatenate([held, np.delete(np.arange(len(v)), held)])
-        new_index = np.empty(len(v), dtype=np.int64)
-        new_index[order] = np.arange(len(v))
-        v, f = v[order], new_index[f].astype(np.int32)
-    out_v, out_f = _remesh_botsch_cpp_impl(
-        v, f, iterations, edge_m, np.arange(len(held), dtype=np.int32),
-        np.zeros((0, 2), dtype=np.int32), True,
-    )
-    return np.asarray(out_v, dtype=np.float64), np.asarray(out_f, dtype=np.int32)
-
-
-def _boundary_split_kernel(vertices_m: FloatArray, faces: Faces, edge_m: float,
-                           iterations: int) -> tuple[FloatArray, Faces]:
-    """`_kernel` on the mesh with its long boundary edges split first, which the kernel
-    cannot do as it holds the boundary, in a spatial order (`_in_spatial_order`). Both run
-    in the kernel's child, beside the caller's clean-up of the input (on beetle's update
-    0.35 s and 0.12 s, beside the kernel's 2.8 s, on the fifteenth session's machine)."""
-    v, f, _ = _in_spatial_order(*split_boundary_edges(vertices_m, faces, edge_m))
-    return _kernel(v, f, edge_m, iterations)
-
-
-def _child_main(request_path: str, result_path: str) -> None:
-    """Child process body (``python -m pipeline.remesh REQUEST RESULT``): arrays in from the
-    .npz file REQUEST, the remeshed arrays out to the .npz file RESULT; any failure exits
-    non-zero."""
-    with np.load(request_path, allow_pickle=False) as data:
-        kernel = _boundary_split_kernel if bool(data["split"]) else _kernel
-        vertices, faces = kernel(data["vertices_m"], data["faces"], float(data["edge_m"]),
-                                 int(data["iterations"]))
-    np.savez(result_path, vertices_m=vertices, faces=faces)
-
-
-def start_isolated(vertices_m: FloatArray, faces: Faces, edge_m: float, iterations: int,
-                   timeout_s: float, split: bool = True) -> Callable[[], KernelOutcome]:
-    """Starts the kernel, after the boundary split (`_boundary_split_kernel`) where `split`,
-    in a child interpreter and returns a call that waits for it: (result, None), or (None,
-    why it failed). The caller may work meanwhile.
-
-    A plain child process rather than multiprocessing: it never re-imports the caller's
-    main module, so it works from any script, worker or test runner. The arrays go both ways
-    as files: through pipes, a thread of the caller had to move each 64 KB, waiting its turn
-    for the interpreter lock while the caller worked, and the children waited on it (on the
-    device machine's H200 host, 1.2 s of the bunny's light remesh went in waiting).
-    """
-    folder = Path(tempfile.mkdtemp(prefix="volumesh-remesh-"))
-    request, result = folder / "request.npz", folder / "result.npz"
-    np.savez(request, vertices_m=np.asarray(vertices_m, np.float64),
-             faces=np.asarray(faces, np.int32), edge_m=np.float64(edge_m),
-             iterations=np.int64(iterations), split=np.bool_(split))
-    package_root = str(Path(__file__).resolve().parents[1])
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join(p for p in (package_root, env.get("PYTHONPATH")) if p)
-    with open(folder / "stderr.txt", "wb") as stderr:
-        child = subprocess.Popen([sys.executable, "-m", "pipeline.remesh", str(request),
-                                  str(result)], stdin=subprocess.DEVNULL,
-                                 stdout=subprocess.DEVNULL, stderr=stderr, env=env)
-    deadline = time.monotonic() + timeout_s
-    # A thread in a blocking waitpid wakes the moment the child ends; Popen.wait(timeout)
-    # would poll, up to 50 ms late.
-    waiter = threading.Thread(target=child.wait, daemon=True)
-    waiter.start()
-
-    def wait() -> KernelOutcome:
-        waiter.join(max(0.0, deadline - time.monotonic()))
-        try:
-            if waiter.is_alive():
-                child.kill()
-                waiter.join()
-                return None, f"remesh kernel timed out after {timeout_s:g} s"
-            return _read_outcome(child.returncode, result, folder / "stderr.txt")
-        finally:
-            shutil.rmtree(folder, ignore_errors=True)
-
-    return wait
-
-
-def run_isolated(vertices_m: FloatArray, faces: Faces, edge_m: float, iterations: int,
-                 timeout_s: float) -> KernelOutcome:
-    """The kernel in a child interpreter (`start_isolated`), waited for."""
-    return start_isolated(vertices_m, faces, edge_m, iterations, timeout_s)()
-
-
 MIN_PIECE_FACES = 50_000
 """Faces a piece of the kernel's work has at least (`kernel_processes`): a child takes about
 0.2 s to start, the kernel about 5 us a face (the bunny's LDM update, 211 k faces, 0.95 s)."""
@@ -210,21 +102,25 @@ def kernel_piece_count(face_count: int, processes: int | None) -> int:
     return max(1, min(len(os.sched_getaffinity(0)), face_count // MIN_PIECE_FACES))
 
 
-def start_kernel(vertices_m: FloatArray, faces: Faces, config: RemeshConfig
-                 ) -> Callable[[], KernelOutcome]:
+def start_kernel(vertices_m: FloatArray, faces: Faces, config: RemeshConfig,
+                 children: Sequence[KernelChild] = ()) -> Callable[[], KernelOutcome]:
     """`start_isolated` on the whole mesh, or, where it is cut into more than one piece
     (`kernel_piece_count`), the boundary split here, then one child per spatial piece
-    (`remesh_pieces`); the call that waits joins them. One piece failing fails the whole."""
+    (`remesh_pieces`); the call that waits joins them. One piece failing fails the whole.
+    The started `children` are used first (the caller ends any left), then new ones."""
     count = kernel_piece_count(len(faces), config.kernel_processes)
+    ready: list[KernelChild | None] = [*children[:count], *[None] * (count - len(children))]
     edge_m, iterations = config.target_edge_length_m, config.iterations
     if count == 1:
-        return start_isolated(vertices_m, faces, edge_m, iterations, config.timeout_s)
+        return start_isolated(vertices_m, faces, edge_m, iterations, config.timeout_s,
+                              child=ready[0])
     from pipeline.remesh_pieces import spatial_pieces, stitched
 
-    vertices_m, faces, _ = _in_spatial_order(*split_boundary_edges(vertices_m, faces, edge_m))
+    vertices_m, faces, _ = in_spatial_order(*split_boundary_edges(vertices_m, faces, edge_m))
     pieces = spatial_pieces(faces, count)
     waits = [start_isolated(vertices_m[p.vertex_ids], p.faces, edge_m, iterations,
-                            config.timeout_s, split=False) for p in pieces]
+                            config.timeout_s, split=False, child=child)
+             for p, child in zip(pieces, ready, strict=True)]
 
     def wait() -> KernelOutcome:
         outcomes = [w() for w in waits]
@@ -237,20 +133,6 @@ def start_kernel(vertices_m: FloatArray, faces: Faces, config: RemeshConfig
             return None, str(exc)
 
     return wait
-
-
-def _read_outcome(returncode: int, result: Path, stderr: Path) -> KernelOutcome:
-    if returncode < 0:
-        return None, f"remesh kernel crashed (signal {-returncode})"
-    if returncode != 0:
-        lines = stderr.read_text(errors="replace").strip().splitlines()
-        return None, f"remesh kernel failed: {lines[-1] if lines else returncode}"
-    try:
-        with np.load(result, allow_pickle=False) as data:
-            return (np.asarray(data["vertices_m"], np.float64),
-                    np.asarray(data["faces"], np.int32)), None
-    except (ValueError, OSError, KeyError) as exc:
-        return None, f"remesh kernel returned no mesh ({exc})"
 
 
 def angle_stats(vertices_m: FloatArray, faces: Faces, config: RemeshConfig) -> dict[str, float]:
@@ -272,14 +154,16 @@ def _outside(angles: dict[str, float]) -> float:
     return angles["share_below_min"] + angles["share_above_max"]
 
 
-def remesh(mesh: TriangleMesh, config: RemeshConfig) -> tuple[TriangleMesh, dict[str, Any]]:
+def remesh(mesh: TriangleMesh, config: RemeshConfig, children: Sequence[KernelChild] = ()
+           ) -> tuple[TriangleMesh, dict[str, Any]]:
     """The mesh remeshed isotropically; stats hold repairs, angle figures, any warning and,
     where the kernel runs in a child, the seconds the caller waited for it (`kernel_wait_s`).
 
     Where the kernel's result may be dropped (`max_kernel_added_outside`,
     `max_kernel_lost_edges`) and it runs in a child, the input is cleaned up while the child
     runs: that is the answer wherever the kernel is dropped or fails, so choosing costs no
-    second clean-up after the kernel's.
+    second clean-up after the kernel's. The kernel's children may have been started ahead
+    (`children`: `remesh_kernel.kernel_children`).
     """
     vertices, faces, removed = repair(mesh.vertices_m, mesh.faces, config.min_component_share)
     if len(faces) == 0:
@@ -291,14 +175,14 @@ def remesh(mesh: TriangleMesh, config: RemeshConfig) -> tuple[TriangleMesh, dict
               or config.max_kernel_lost_edges is not None)
     input_cleaned = None
     if config.isolate:
-        wait = start_kernel(vertices, faces, config)
+        wait = start_kernel(vertices, faces, config, children)
         if judged:
             input_cleaned = _cleaned_up(vertices, faces, config, dict(stats))
         waited_from = time.perf_counter()
         result, warning = wait()
         stats["kernel_wait_s"] = time.perf_counter() - waited_from
     else:
-        result, warning = _boundary_split_kernel(vertices, faces, config.target_edge_length_m,
+        result, warning = boundary_split_kernel(vertices, faces, config.target_edge_length_m,
                                                  config.iterations), None
     stats["warning"] = warning and f"{warning}; kept the unremeshed mesh"
     if result is not None and judged:
@@ -347,17 +231,6 @@ def _kernel_passes(input_vertices_m: FloatArray, result_vertices_m: FloatArray,
     return passes
 
 
-def _in_spatial_order(vertices_m: FloatArray, faces: Faces
-                      ) -> tuple[FloatArray, Faces, NDArray[np.int64]]:
-    """The mesh's vertices and faces in a spatial order (`mesh_order`), and (F,) the input
-    index of each face. The kernel runs faster on it too (the bunny's enhanced mesh 0.9 ->
-    0.6 s), and the clean-up's edge tables and neighbour gathers about twice as fast."""
-    mesh = TriangleMesh(vertices_m=vertices_m, faces=faces)
-    order = spatial_order(mesh)
-    ordered = reordered(mesh, order)
-    return ordered.vertices_m, ordered.faces, order.face_order
-
-
 def _cleaned_up(vertices_m: FloatArray, faces: Faces, config: RemeshConfig,
                 stats: dict[str, Any], angles: FloatArray | None = None
                 ) -> tuple[TriangleMesh, dict[str, Any]]:
@@ -365,13 +238,10 @@ def _cleaned_up(vertices_m: FloatArray, faces: Faces, config: RemeshConfig,
     faces' `triangle_angles_deg`, where they are already known)."""
     angles = triangle_angles_deg(vertices_m, faces) if angles is None else angles
     stats["angles_before_cleanup"] = _angle_figures(angles, config)
-    vertices_m, faces, face_order = _in_spatial_order(vertices_m, faces)
+    vertices_m, faces, face_order = in_spatial_order(vertices_m, faces)
     vertices_m, faces, angles, stats["angle_cleanup"] = enforce_angles(
         vertices_m, faces, angles[face_order], config.min_angle_deg, config.max_angle_deg,
         config.cleanup_passes)
     stats["angles"] = _angle_figures(angles, config)
     return TriangleMesh(vertices_m=vertices_m, faces=faces), stats
 
-
-if __name__ == "__main__":
-    _child_main(*sys.argv[1:3])

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 
@@ -22,6 +22,8 @@ from pipeline.enhance.render import (
 from pipeline.enhance.update import UpdateConfig, ViewSteps, apply_view_steps, view_steps
 from pipeline.mesh import TriangleMesh, mean_edge_length_m
 from pipeline.mesh_order import reordered, restored, spatial_order
+from pipeline.remesh import RemeshConfig, kernel_piece_count, remesh
+from pipeline.remesh_kernel import KernelChild, kernel_children
 
 STAGE_PROGRESS = {"render": 0.03, "presmooth": 0.33, "network": 0.5, "update": 0.54,
                   "remesh": 1.0}
@@ -193,6 +195,19 @@ def enhance_mesh(
         if progress is not None:
             progress(STAGE_PROGRESS[stage])
 
+    # The light remesh's kernel children start now: their interpreters start and import
+    # while the stages before the remesh run.
+    pieces = kernel_piece_count(mesh.face_count, None) if config.remesh_iterations > 0 else 0
+    with kernel_children(pieces) as children:
+        return _enhanced_by_views(mesh, config, device, done, children)
+
+
+def _enhanced_by_views(mesh: TriangleMesh, config: EnhanceConfig, device: str,
+                       done: Callable[[str], None], children: Sequence[KernelChild]
+                       ) -> TriangleMesh:
+    """`enhance_mesh` of the view-based methods, the light remesh's kernel in `children`."""
+    from pipeline.enhance.device import accelerator
+
     # The stages gather neighbours all over the mesh; in a spatial order they hit the cache.
     order = spatial_order(mesh)
     ordered = reordered(mesh, order)
@@ -219,8 +234,8 @@ def enhance_mesh(
     done("update")
     # The light remesh makes connectivity of its own, and in the spatial order it runs faster
     # too (bunny 2.3 -> 1.7 s); without it the output keeps the input's order.
-    result = (light_remesh(result, config.remesh_iterations) if config.remesh_iterations > 0
-              else restored(result, order))
+    result = (light_remesh(result, config.remesh_iterations, children)
+              if config.remesh_iterations > 0 else restored(result, order))
     done("remesh")
     return result
 
@@ -310,7 +325,8 @@ across, where it did harm (0.9837 mm without the light remesh, 0.9986 with it, 0
 clean-up alone)."""
 
 
-def light_remesh(mesh: TriangleMesh, iterations: int) -> TriangleMesh:
+def light_remesh(mesh: TriangleMesh, iterations: int, children: Sequence[KernelChild] = ()
+                 ) -> TriangleMesh:
     """The mesh remeshed at its own mean edge length (vertices projected back onto it), unless
     that adds faces outside the angle criteria (`LIGHT_REMESH_MAX_ADDED_OUTSIDE`) or cuts part
     of the surface away (`LIGHT_REMESH_MAX_LOST_EDGES`), then its angles cleaned up. Under the
@@ -322,13 +338,11 @@ def light_remesh(mesh: TriangleMesh, iterations: int) -> TriangleMesh:
     length the held cuts cost nothing measurable (the bunny's LDM update 0.66126 against
     0.66128 mm), and on 2 cores two pieces take 10-15 % off the light remesh
     (`benchmarks/remesh_speed.py`)."""
-    from pipeline.remesh import RemeshConfig, remesh
-
     config = RemeshConfig(target_edge_length_m=mean_edge_length_m(mesh), iterations=iterations,
                           max_kernel_added_outside=LIGHT_REMESH_MAX_ADDED_OUTSIDE,
                           max_kernel_lost_edges=LIGHT_REMESH_MAX_LOST_EDGES,
                           min_component_share=0.0, kernel_processes=None)
-    return remesh(mesh, config)[0]
+    return remesh(mesh, config, children)[0]
 
 
 def enhance_renders(

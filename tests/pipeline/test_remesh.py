@@ -9,7 +9,8 @@ import trimesh
 
 from pipeline.mesh import TriangleMesh
 from pipeline.mesh_repair import edge_table, triangle_angles_deg
-from pipeline.remesh import RemeshConfig, remesh, run_isolated
+from pipeline.remesh import RemeshConfig, remesh
+from pipeline.remesh_kernel import run_isolated
 
 MESHES = Path(__file__).resolve().parents[3] / "shared" / "data" / "meshes"
 
@@ -119,7 +120,7 @@ def test_the_kernel_equals_gpytoolbox_remesh_botsch(open_mesh: bool) -> None:
     exactly the wrapper's remesh, boundary vertices held, on a closed and an open mesh."""
     import gpytoolbox
 
-    from pipeline.remesh import _kernel
+    from pipeline.remesh_kernel import kernel
 
     sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
     v = np.asarray(sphere.vertices, np.float64)
@@ -129,7 +130,7 @@ def test_the_kernel_equals_gpytoolbox_remesh_botsch(open_mesh: bool) -> None:
         f = f[v[f].mean(axis=1)[:, 2] < 0.2]  # cut the cap off: a boundary loop
         used = np.unique(f)
         v, f = v[used], np.searchsorted(used, f).astype(np.int32)
-    ours = _kernel(v, f, 0.06, 2)
+    ours = kernel(v, f, 0.06, 2)
     theirs = gpytoolbox.remesh_botsch(v, f, i=2, h=0.06, project=True)
     assert np.array_equal(ours[0], theirs[0]) and np.array_equal(ours[1], theirs[1])
     if open_mesh:

@@ -9,7 +9,8 @@ from hypothesis import strategies as st
 from pipeline.mesh import TriangleMesh, mean_edge_length_m
 from pipeline.mesh_order import reordered, spatial_order
 from pipeline.mesh_repair import edge_table, faces_per_edge
-from pipeline.remesh import RemeshConfig, _kernel, kernel_piece_count, remesh
+from pipeline.remesh import RemeshConfig, kernel_piece_count, remesh
+from pipeline.remesh_kernel import kernel
 from pipeline.remesh_pieces import held_vertices, spatial_pieces, stitched
 
 
@@ -42,7 +43,7 @@ def test_pieces_remeshed_apart_join_into_one_manifold_surface(
     edge_m = mean_edge_length_m(mesh)
     pieces = spatial_pieces(mesh.faces, count)
     assert sum(len(p.faces) for p in pieces) == mesh.face_count
-    results = [_kernel(mesh.vertices_m[p.vertex_ids], p.faces, edge_m, 1) for p in pieces]
+    results = [kernel(mesh.vertices_m[p.vertex_ids], p.faces, edge_m, 1) for p in pieces]
     vertices_m, faces = stitched(mesh.vertices_m, pieces, results)
     uses = _edge_uses(faces)
     # No seam opened and none overlaps: the boundary is the input's, every other edge has
@@ -59,7 +60,7 @@ def test_pieces_remeshed_apart_join_into_one_manifold_surface(
     # Still the sphere, and about as finely meshed as in one piece.
     radius_m = np.linalg.norm(vertices_m, axis=1)
     assert np.abs(radius_m - 0.5).max() < 0.02
-    whole_v, whole_f = _kernel(mesh.vertices_m, mesh.faces, edge_m, 1)
+    whole_v, whole_f = kernel(mesh.vertices_m, mesh.faces, edge_m, 1)
     assert len(faces) == pytest.approx(len(whole_f), rel=0.03)
 
 

@@ -1,0 +1,201 @@
+"""The remesh kernel, gpytoolbox's ``remesh_botsch``, and the child interpreter it runs in.
+
+The kernel is native code that has crashed the whole process on some inputs (cow.obj), so
+`remesh` runs it in a child: a crash, an error or a timeout there leaves the caller running.
+A child can be started ahead of its work (`KernelChild.start`), so that the interpreter's
+start and the kernel's import are done while the caller works on what comes before the
+remesh: the enhancement starts its children before it renders (`kernel_children`).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from pipeline.boundary_split import split_boundary_edges
+from pipeline.mesh_order import in_spatial_order
+from pipeline.mesh_repair import edge_table, faces_per_edge
+
+FloatArray = NDArray[np.float64]
+Faces = NDArray[np.int32]
+KernelOutcome = tuple[tuple[FloatArray, Faces] | None, str | None]
+"""The kernel's (vertices, faces), or None and why it failed."""
+
+
+def kernel(vertices_m: FloatArray, faces: Faces, edge_m: float, iterations: int
+           ) -> tuple[FloatArray, Faces]:
+    """gpytoolbox's ``remesh_botsch`` (boundary vertices held, projection on), called past its
+    Python wrapper, whose input checks (row-wise sorts of every half-edge) took 1.8 s of its
+    2.9 s on a 100 k-vertex mesh; the same checks here take a tenth of that. The wrapper's
+    contract is kept: the held vertices (the boundary's, ascending) come first. A test holds
+    the two equal."""
+    from gpytoolbox_bindings import _remesh_botsch_cpp_impl
+
+    v = np.asarray(vertices_m, np.float64)
+    f = np.asarray(faces, np.int32)
+    edges, opposite = edge_table(f)
+    uses = faces_per_edge(opposite, len(edges))
+    if (uses > 2).any():
+        raise ValueError("Input mesh is non-manifold.")
+    held = np.unique(edges[uses == 1])
+    if len(held):
+        order = np.concatenate([held, np.delete(np.arange(len(v)), held)])
+        new_index = np.empty(len(v), dtype=np.int64)
+        new_index[order] = np.arange(len(v))
+        v, f = v[order], new_index[f].astype(np.int32)
+    out_v, out_f = _remesh_botsch_cpp_impl(
+        v, f, iterations, edge_m, np.arange(len(held), dtype=np.int32),
+        np.zeros((0, 2), dtype=np.int32), True,
+    )
+    return np.asarray(out_v, dtype=np.float64), np.asarray(out_f, dtype=np.int32)
+
+
+def boundary_split_kernel(vertices_m: FloatArray, faces: Faces, edge_m: float,
+                          iterations: int) -> tuple[FloatArray, Faces]:
+    """`kernel` on the mesh with its long boundary edges split first, which the kernel
+    cannot do as it holds the boundary, in a spatial order (`in_spatial_order`). Both run
+    in the kernel's child, beside the caller's clean-up of the input (on beetle's update
+    0.35 s and 0.12 s, beside the kernel's 2.8 s, on the fifteenth session's machine)."""
+    v, f, _ = in_spatial_order(*split_boundary_edges(vertices_m, faces, edge_m))
+    return kernel(v, f, edge_m, iterations)
+
+
+class KernelChild:
+    """A child interpreter (``python -m pipeline.remesh_kernel``) that has imported the kernel
+    and waits on its stdin for one request: the paths of a request .npz and of the result
+    .npz it writes, on one line. Closing its stdin unasked lets it end with nothing done.
+
+    A plain child process rather than multiprocessing: it never re-imports the caller's
+    main module, so it works from any script, worker or test runner. The arrays go both ways
+    as files: through pipes, a thread of the caller had to move each 64 KB, waiting its turn
+    for the interpreter lock while the caller worked, and the children waited on it (on the
+    device machine's H200 host, 1.2 s of the bunny's light remesh went in waiting).
+    """
+
+    def __init__(self) -> None:
+        self.folder = Path(tempfile.mkdtemp(prefix="volumesh-remesh-"))
+        package_root = str(Path(__file__).resolve().parents[1])
+        env = dict(os.environ)
+        env["PYTHONPATH"] = os.pathsep.join(p for p in (package_root, env.get("PYTHONPATH"))
+                                            if p)
+        with open(self.folder / "stderr.txt", "wb") as stderr:
+            self.process = subprocess.Popen(
+                [sys.executable, "-m", "pipeline.remesh_kernel"], stdin=subprocess.PIPE,
+                stdout=subprocess.DEVNULL, stderr=stderr, env=env)
+
+    def submit(self, vertices_m: FloatArray, faces: Faces, edge_m: float, iterations: int,
+               timeout_s: float, split: bool) -> Callable[[], KernelOutcome]:
+        """Hands the child its request and returns a call that waits for the outcome."""
+        request, result = self.folder / "request.npz", self.folder / "result.npz"
+        np.savez(request, vertices_m=np.asarray(vertices_m, np.float64),
+                 faces=np.asarray(faces, np.int32), edge_m=np.float64(edge_m),
+                 iterations=np.int64(iterations), split=np.bool_(split))
+        assert self.process.stdin is not None
+        try:
+            self.process.stdin.write(f"{request}\t{result}\n".encode())
+            self.process.stdin.close()
+        except BrokenPipeError:
+            pass  # it ended before its request; the outcome says how
+        deadline = time.monotonic() + timeout_s
+        # A thread in a blocking waitpid wakes the moment the child ends; Popen.wait(timeout)
+        # would poll, up to 50 ms late.
+        waiter = threading.Thread(target=self.process.wait, daemon=True)
+        waiter.start()
+
+        def wait() -> KernelOutcome:
+            waiter.join(max(0.0, deadline - time.monotonic()))
+            try:
+                if waiter.is_alive():
+                    self.process.kill()
+                    waiter.join()
+                    return None, f"remesh kernel timed out after {timeout_s:g} s"
+                return _read_outcome(self.process.returncode, result,
+                                     self.folder / "stderr.txt")
+            finally:
+                shutil.rmtree(self.folder, ignore_errors=True)
+
+        return wait
+
+    def close(self) -> None:
+        """Ends a child that was given no request."""
+        if self.process.stdin is not None and not self.process.stdin.closed:
+            self.process.stdin.close()
+        try:
+            self.process.wait(timeout=5.0)
+        except subprocess.TimeoutExpired:
+            self.process.kill()
+            self.process.wait()
+        shutil.rmtree(self.folder, ignore_errors=True)
+
+
+@contextmanager
+def kernel_children(count: int) -> Iterator[list[KernelChild]]:
+    """`count` children started now, for a `remesh` to come (its `children`); those it did
+    not use are ended on leaving."""
+    children = [KernelChild() for _ in range(count)]
+    try:
+        yield children
+    finally:
+        for child in children:
+            child.close()
+
+
+def start_isolated(vertices_m: FloatArray, faces: Faces, edge_m: float, iterations: int,
+                   timeout_s: float, split: bool = True, child: KernelChild | None = None
+                   ) -> Callable[[], KernelOutcome]:
+    """Starts the kernel, after the boundary split (`boundary_split_kernel`) where `split`,
+    in `child` (a started `KernelChild`; None: one started now) and returns a call that
+    waits for it: (result, None), or (None, why it failed). The caller may work meanwhile."""
+    return (child or KernelChild()).submit(vertices_m, faces, edge_m, iterations, timeout_s,
+                                           split)
+
+
+def run_isolated(vertices_m: FloatArray, faces: Faces, edge_m: float, iterations: int,
+                 timeout_s: float) -> KernelOutcome:
+    """The kernel in a child interpreter (`start_isolated`), waited for."""
+    return start_isolated(vertices_m, faces, edge_m, iterations, timeout_s)()
+
+
+def _read_outcome(returncode: int, result: Path, stderr: Path) -> KernelOutcome:
+    if returncode < 0:
+        return None, f"remesh kernel crashed (signal {-returncode})"
+    if returncode != 0:
+        lines = stderr.read_text(errors="replace").strip().splitlines()
+        return None, f"remesh kernel failed: {lines[-1] if lines else returncode}"
+    try:
+        with np.load(result, allow_pickle=False) as data:
+            return (np.asarray(data["vertices_m"], np.float64),
+                    np.asarray(data["faces"], np.int32)), None
+    except (ValueError, OSError, KeyError) as exc:
+        return None, f"remesh kernel returned no mesh ({exc})"
+
+
+def _child_main() -> None:
+    """Child process body: the kernel imported first, then one request from stdin (nothing
+    on stdin: exit with nothing done); any failure exits non-zero."""
+    import gpytoolbox_bindings  # noqa: F401  (imported while the caller still works)
+
+    line = sys.stdin.readline().strip()
+    if not line:
+        return
+    request_path, result_path = line.split("\t")
+    with np.load(request_path, allow_pickle=False) as data:
+        run = boundary_split_kernel if bool(data["split"]) else kernel
+        vertices, faces = run(data["vertices_m"], data["faces"], float(data["edge_m"]),
+                              int(data["iterations"]))
+    np.savez(result_path, vertices_m=vertices, faces=faces)
+
+
+if __name__ == "__main__":
+    _child_main()
