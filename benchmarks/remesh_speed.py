@@ -3,7 +3,7 @@ the boundary split's rounds near the long edges against rounds over every face; 
 
     .venv/bin/python benchmarks/remesh_speed.py [--mesh NAME] [--repeats N] [--pieces N ...]
 
-`pieces_started_ahead` is the default as `enhance_mesh` runs it, its kernel's children
+Each variant also runs `_started_ahead`, as `enhance_mesh` runs it: the kernel's children
 started a second before (`remesh_kernel.kernel_children`), while the stages before the remesh
 run. The input is what `enhance_mesh` hands the light remesh: the LDM's update of a protocol mesh
 (`bunny_protocol`, the LDM at 4 steps with no remesh), in a spatial order. Each variant runs
@@ -47,6 +47,17 @@ def light_remesh_config(mesh: TriangleMesh, processes: int | None) -> RemeshConf
                         min_component_share=0.0, kernel_processes=processes)
 
 
+def timed_remesh(mesh: TriangleMesh, config: RemeshConfig, ahead: bool) -> tuple[float, float]:
+    """Seconds of one `remesh` and of its wait for the kernel; `ahead`: as `enhance_mesh` runs
+    it, the kernel's children started a second before, while the stages before it run."""
+    count = kernel_piece_count(mesh.face_count, config.kernel_processes) if ahead else 0
+    with kernel_children(count) as children:
+        time.sleep(1.0 if ahead else 0.0)
+        start = time.perf_counter()
+        wait = remesh(mesh, config, children)[1]["kernel_wait_s"]
+        return round(time.perf_counter() - start, 3), round(wait, 3)
+
+
 def timed(call, repeats: int) -> list[float]:
     out = []
     for _ in range(repeats):
@@ -71,20 +82,15 @@ def main() -> None:
                "pieces": light_remesh_config(update, None)}
     configs |= {f"pieces_{n}": light_remesh_config(update, n) for n in args.pieces}
     results = {name: remesh(update, config)[0] for name, config in configs.items()}  # warm-up
-    seconds: dict[str, list[float]] = {name: [] for name in [*configs, "pieces_started_ahead"]}
-    waits: dict[str, list[float]] = {name: [] for name in seconds}
+    seconds: dict[str, list[float]] = {}
+    waits: dict[str, list[float]] = {}
     for _ in range(args.repeats):
         for name, config in configs.items():
-            start = time.perf_counter()
-            waits[name].append(round(remesh(update, config)[1]["kernel_wait_s"], 3))
-            seconds[name].append(round(time.perf_counter() - start, 3))
-        # As `enhance_mesh` runs it: the children started while the stages before it run.
-        with kernel_children(kernel_piece_count(update.face_count, None)) as children:
-            time.sleep(1.0)
-            start = time.perf_counter()
-            wait = remesh(update, configs["pieces"], children)[1]["kernel_wait_s"]
-            seconds["pieces_started_ahead"].append(round(time.perf_counter() - start, 3))
-            waits["pieces_started_ahead"].append(round(wait, 3))
+            for ahead in (False, True):
+                key = f"{name}_started_ahead" if ahead else name
+                took, wait = timed_remesh(update, config, ahead)
+                seconds.setdefault(key, []).append(took)
+                waits.setdefault(key, []).append(wait)
     v, f, _ = repair(update.vertices_m, update.faces, 0.0)
     edge_m = mean_edge_length_m(update)
     region, whole = split_boundary_edges(v, f, edge_m), split_everywhere(v, f, edge_m)
