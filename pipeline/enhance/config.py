@@ -216,7 +216,8 @@ def _enhanced_by_views(mesh: TriangleMesh, config: EnhanceConfig, device: str,
     # threads' torch ops each ask for every core (bunny 5.2-6.2 s against 4.9-5.1 s).
     with ThreadPoolExecutor(max_workers=1) as pool:
         gate = pool.submit(skips_enhancement, mesh, config, device)
-        renders = render_depth(ordered, views_for(ordered, config), with_color=True)
+        renders = render_depth(ordered, views_for(ordered, config), with_color=True,
+                               device=accelerator(device))
         if gate.result():
             done("remesh")
             return mesh
@@ -266,10 +267,12 @@ def update_inputs(
     """Renders the mesh from `views_for` (unless its `renders`, with colour, are given),
     calls `done("render")`, and pre-smooths it (smoothing steps on `device`) as
     `config.method` wants."""
+    from pipeline.enhance.device import accelerator
     from pipeline.enhance.inference import model_bytes, presmoothed
 
     if renders is None:
-        renders = render_depth(mesh, views_for(mesh, config), with_color=True)
+        renders = render_depth(mesh, views_for(mesh, config), with_color=True,
+                               device=accelerator(device))
     views = renders.views
     done("render")
     base, base_renders, update = mesh, renders, config.update
@@ -277,7 +280,7 @@ def update_inputs(
         selector = model_bytes(config, "selector") if config.presmooth_learned else None
         base = presmoothed(mesh, config.presmooth_iterations, config.presmooth_passes,
                            config.presmooth_adaptive, selector, device, config.bounded_noise)
-        base_renders = render_depth(base, views, with_color=False)
+        base_renders = render_depth(base, views, with_color=False, device=accelerator(device))
         update = replace(update, unseen_follow_moves=True)
     if config.method != "views":
         update = replace(update, follow_change=True)

@@ -88,3 +88,28 @@ def mean_operator(pattern: NeighbourPattern, self_weight: float = 0.0,
     index = torch.int32 if len(rows) < 2**31 - 1 else torch.int64
     return csr_tensor(row_starts.to(index), columns.to(index), values.to(dtype),
                       (pattern.vertex_count, pattern.vertex_count))
+
+
+def faces_sharing_vertices(faces: torch.Tensor, vertex_count: int
+                           ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The faces that share a vertex with each of (F, 3) int64 faces, itself included, as
+    CSR rows on their device: (F + 1,) row starts and the (P,) columns, ascending in a row
+    (`mesh_repair.faces_sharing_vertices`' pattern)."""
+    face_count = len(faces)
+    corner_vertex = faces.reshape(-1)
+    by_vertex = torch.argsort(corner_vertex, stable=True)
+    face_of = torch.arange(face_count, device=faces.device).repeat_interleave(3)[by_vertex]
+    per_vertex = torch.bincount(corner_vertex, minlength=vertex_count)
+    first = torch.cumsum(per_vertex, 0) - per_vertex
+    # Each corner pairs with every corner at its vertex.
+    shares = per_vertex[corner_vertex[by_vertex]]
+    pair_first = torch.cumsum(shares, 0) - shares
+    within = torch.arange(int(shares.sum()), device=faces.device) - pair_first.repeat_interleave(
+        shares)
+    partner = first[corner_vertex[by_vertex]].repeat_interleave(shares) + within
+    keys = torch.unique(face_of.repeat_interleave(shares) * face_count + face_of[partner])
+    rows = keys // face_count
+    row_starts = torch.zeros(face_count + 1, dtype=torch.int64, device=faces.device)
+    row_starts[1:] = torch.cumsum(torch.bincount(rows, minlength=face_count), 0)
+    index = torch.int32 if len(keys) < 2**31 - 1 else torch.int64
+    return row_starts.to(index), (keys % face_count).to(index)

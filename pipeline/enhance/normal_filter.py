@@ -14,7 +14,9 @@ it bends a clean surface (a 24-segment sphere, 6.5 cm edges on 0.5 m, by 2.5 mm 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.sparse as sp
@@ -22,6 +24,9 @@ from numpy.typing import NDArray
 
 from pipeline.mesh import TriangleMesh, face_normals, mean_edge_length_m
 from pipeline.mesh_repair import face_areas, faces_sharing_vertices
+
+if TYPE_CHECKING:
+    import torch
 
 FloatArray = NDArray[np.float64]
 Faces = NDArray[np.int32]
@@ -75,29 +80,26 @@ def filtered_normals(vertices_m: FloatArray, faces: Faces, config: NormalFilterC
     gathering both normals of every pair took 0.30 s."""
     import torch
 
-    from pipeline.enhance.device import csr_indices, csr_tensor, on_device
+    from pipeline.enhance.device import accelerator, csr_tensor
 
-    normals, areas = face_normals(vertices_m, faces), face_areas(vertices_m, faces)
-    other, row_starts = face_neighbours(faces, len(vertices_m))
-    spatial_sigma_m = config.spatial_sigma_edges * mean_edge_length_m(
-        TriangleMesh(vertices_m=vertices_m, faces=faces))
-    starts, columns = csr_indices(row_starts, other, device)
+    inputs = (_face_inputs_there if accelerator(device) else _face_inputs)(
+        vertices_m, faces, device)
+    normals, areas, starts, columns, centroids = inputs[:5]
+    spatial_sigma_m = config.spatial_sigma_edges * inputs[5]
     shape = (len(faces), len(faces))
-    pattern = csr_tensor(starts, columns, on_device(np.zeros(len(other)), device), shape)
+    pattern = csr_tensor(starts, columns, normals.new_zeros(len(columns)), shape)
 
     def pair_products(field: torch.Tensor) -> torch.Tensor:
         """(P,) each neighbour pair's product of `field`'s rows, in the pattern's order."""
         return torch.sparse.sampled_addmm(pattern, field, field.T.contiguous(), beta=0.0).values()
 
     # |c_f - c_g|² from products, about the centroids' mean so that they cancel less.
-    centroids_m = vertices_m[faces].mean(axis=1)
-    centroids = on_device(centroids_m - centroids_m.mean(axis=0), device)
     squared = (centroids * centroids).sum(dim=1)
     gap_m2 = (squared.repeat_interleave(starts.diff()) + squared[columns]
               - 2.0 * pair_products(centroids)).clamp_min(0.0)
     # A face is its own neighbour: at no distance and alike, its weight is its area.
-    near = on_device(areas, device)[columns] * torch.exp(-gap_m2 / (2 * spatial_sigma_m**2))
-    n = on_device(normals, device)
+    near = areas[columns] * torch.exp(-gap_m2 / (2 * spatial_sigma_m**2))
+    n = normals
     for _ in range(config.normal_iterations):
         # |n_f - n_g|² = 2 - 2 n_f·n_g for unit normals.
         likeness = pair_products(n)
@@ -106,6 +108,45 @@ def filtered_normals(vertices_m: FloatArray, faces: Faces, config: NormalFilterC
         summed = averaging @ n
         n = summed / summed.norm(dim=1, keepdim=True).clamp_min(1e-300)
     return n.cpu().numpy()
+
+
+FaceInputs = tuple["torch.Tensor", "torch.Tensor", "torch.Tensor", "torch.Tensor",
+                   "torch.Tensor", float]
+"""On the filter's device: (F, 3) unit face normals, (F,) areas, the CSR row starts and
+columns of the faces sharing a vertex with each face (`face_neighbours`), (F, 3) centroids
+about their mean, metres; and the mean edge length, metres."""
+
+
+def _face_inputs(vertices_m: FloatArray, faces: Faces, device: str) -> FaceInputs:
+    """`FaceInputs` made in numpy and scipy, then moved to `device`."""
+    from pipeline.enhance.device import csr_indices, on_device
+
+    other, row_starts = face_neighbours(faces, len(vertices_m))
+    starts, columns = csr_indices(row_starts, other, device)
+    centroids_m = vertices_m[faces].mean(axis=1)
+    return (on_device(face_normals(vertices_m, faces), device),
+            on_device(face_areas(vertices_m, faces), device), starts, columns,
+            on_device(centroids_m - centroids_m.mean(axis=0), device),
+            mean_edge_length_m(TriangleMesh(vertices_m=vertices_m, faces=faces)))
+
+
+def _face_inputs_there(vertices_m: FloatArray, faces: Faces, device: str) -> FaceInputs:
+    """`FaceInputs` made in torch on `device` (an accelerator), from the vertices and faces
+    alone: on a GPU the host's share was most of the filter's time."""
+    import torch
+
+    from pipeline.enhance import mesh_torch
+    from pipeline.enhance.device import on_device
+
+    v = on_device(vertices_m, device)
+    f = on_device(faces.astype(np.int64), device)
+    tri = v[f]
+    cross = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    starts, columns = mesh_torch.faces_sharing_vertices(f, len(vertices_m))
+    centroids_m = tri.mean(dim=1)
+    return (mesh_torch.face_normals(v, f), 0.5 * torch.linalg.vector_norm(cross, dim=1),
+            starts, columns, centroids_m - centroids_m.mean(dim=0),
+            mesh_torch.mean_edge_length_m(v, f))
 
 
 def fit_to_normals(vertices_m: FloatArray, faces: Faces, normals: FloatArray,
@@ -119,26 +160,58 @@ def fit_to_normals(vertices_m: FloatArray, faces: Faces, normals: FloatArray,
     sum."""
     import torch
 
-    from pipeline.enhance.device import csr_on_device, on_device
+    from pipeline.enhance.device import accelerator, on_device
 
-    corners = faces.ravel()
-    # (V, F): a vertex's sum over its faces.
-    summing = sp.csr_matrix(
-        (np.ones(len(corners)), (corners, np.repeat(np.arange(len(faces)), 3))),
-        shape=(len(vertices_m), len(faces)))
-    over_faces = csr_on_device(summing, device)
-    # (F, V): a face's centroid.
-    centroid_of = csr_on_device((summing.T / 3.0).tocsr(), device)
-    face_count = on_device(np.maximum(np.asarray(summing.sum(axis=1)), 1), device)
+    at_vertices, centroids, face_count = (_face_sums_there if accelerator(device)
+                                          else _face_sums)(faces, len(vertices_m), device)
     n = on_device(normals, device)
-    projectors = (over_faces @ torch.einsum("fi,fj->fij", n, n).reshape(-1, 9)).reshape(-1, 3, 3)
+    projectors = at_vertices(torch.einsum("fi,fj->fij", n, n).reshape(-1, 9)).reshape(-1, 3, 3)
     out = on_device(vertices_m, device)
     for _ in range(iterations):
-        plane_offset_m = (n * (centroid_of @ out)).sum(dim=1, keepdim=True)
-        toward_planes = over_faces @ (n * plane_offset_m) - torch.einsum(
+        plane_offset_m = (n * centroids(out)).sum(dim=1, keepdim=True)
+        toward_planes = at_vertices(n * plane_offset_m) - torch.einsum(
             "vij,vj->vi", projectors, out)
         out = out + toward_planes / face_count
     return out.cpu().numpy()
+
+
+FaceSums = tuple[Callable[["torch.Tensor"], "torch.Tensor"],
+                 Callable[["torch.Tensor"], "torch.Tensor"], "torch.Tensor"]
+"""On the fit's device: (F, C) -> (V, C) each vertex's sum over its faces, (V, 3) -> (F, 3)
+each face's centroid, and (V, 1) each vertex's count of faces (at least 1)."""
+
+
+def _face_sums(faces: Faces, vertex_count: int, device: str) -> FaceSums:
+    """`FaceSums` as sparse products with matrices made in scipy."""
+    from pipeline.enhance.device import csr_on_device, on_device
+
+    corners = faces.ravel()
+    summing = sp.csr_matrix(
+        (np.ones(len(corners)), (corners, np.repeat(np.arange(len(faces)), 3))),
+        shape=(vertex_count, len(faces)))
+    over_faces = csr_on_device(summing, device)
+    centroid_of = csr_on_device((summing.T / 3.0).tocsr(), device)
+    face_count = on_device(np.maximum(np.asarray(summing.sum(axis=1)), 1), device)
+    return (lambda x: over_faces @ x), (lambda v: centroid_of @ v), face_count
+
+
+def _face_sums_there(faces: Faces, vertex_count: int, device: str) -> FaceSums:
+    """`FaceSums` as gathers and scatters on `device` (an accelerator), with nothing made on
+    the host."""
+    import torch
+
+    from pipeline.enhance.device import on_device
+
+    f = on_device(faces.astype(np.int64), device)
+
+    def at_vertices(x: torch.Tensor) -> torch.Tensor:
+        out = x.new_zeros((vertex_count, x.shape[1]))
+        for corner in range(3):
+            out.index_add_(0, f[:, corner], x)
+        return out
+
+    face_count = torch.bincount(f.reshape(-1), minlength=vertex_count).clamp_min(1)
+    return at_vertices, (lambda v: v[f].mean(dim=1)), face_count[:, None].double()
 
 
 def normal_filter(mesh: TriangleMesh, config: NormalFilterConfig, device: str = "cpu"

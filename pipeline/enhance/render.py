@@ -123,12 +123,24 @@ def _ray_grid(views: ViewSet) -> NDArray[np.float32]:
     return np.concatenate([origins, dirs], axis=-1).astype(np.float32)
 
 
-def render_depth(mesh: TriangleMesh, views: ViewSet, with_color: bool = True) -> DepthRenders:
-    """Ray-cast normalised depth (and interpolated vertex colour when present) for every view."""
-    import open3d as o3d
-
+def render_depth(
+    mesh: TriangleMesh, views: ViewSet, with_color: bool = True, device: str | None = None
+) -> DepthRenders:
+    """Normalised depth (and interpolated vertex colour when present) for every view: ray-cast
+    by open3d on the CPU when `device` is None, else rasterized by torch on that device (cpu,
+    cuda), which agrees but for silhouette pixel centres that lie on an edge."""
     if mesh.face_count == 0:
         raise ValueError("mesh has no faces")
+    if device is not None:
+        from pipeline.enhance.rasterize import rasterize_depth
+
+        colors = mesh.vertex_colors if with_color else None
+        depth, valid, color = rasterize_depth(
+            mesh.vertices_m, mesh.faces, views, device, vertex_colors=colors
+        )
+        return DepthRenders(views, depth, valid, color)
+    import open3d as o3d
+
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(
         o3d.core.Tensor.from_numpy(mesh.vertices_m.astype(np.float32)),

@@ -57,3 +57,15 @@ def test_normals_and_edge_length_are_pipeline_meshs(mesh: TriangleMesh) -> None:
                                rtol=0, atol=2e-7)
     assert mesh_torch.mean_edge_length_m(vertices_m, _faces(mesh)) == pytest.approx(
         mean_edge_length_m(mesh), rel=1e-12)
+
+
+@settings(max_examples=25, deadline=None)
+@given(mesh=MESHES)
+def test_faces_sharing_vertices_is_mesh_repairs_pattern(mesh: TriangleMesh) -> None:
+    from pipeline.mesh_repair import faces_sharing_vertices
+
+    expected = faces_sharing_vertices(mesh.faces, mesh.vertex_count).tocsr()
+    expected.sort_indices()
+    starts, columns = mesh_torch.faces_sharing_vertices(_faces(mesh), mesh.vertex_count)
+    np.testing.assert_array_equal(starts.numpy(), expected.indptr)
+    np.testing.assert_array_equal(columns.numpy(), expected.indices)
