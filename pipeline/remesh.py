@@ -191,10 +191,10 @@ def remesh(mesh: TriangleMesh, config: RemeshConfig, children: Sequence[KernelCh
         made = triangle_angles_deg(*result)
         stats["kernel_kept"] = _kernel_passes(vertices, result[0], given, made, config, stats)
         if stats["kernel_kept"]:
-            return _cleaned_up(*result, config, stats, made)
+            return _cleaned_up(*result, config, stats, made, in_order=True)
         result = None
     if result is not None:
-        return _cleaned_up(*result, config, stats)
+        return _cleaned_up(*result, config, stats, in_order=True)
     if input_cleaned is not None:
         input_cleaned[1].update(stats)
         return input_cleaned
@@ -232,16 +232,20 @@ def _kernel_passes(input_vertices_m: FloatArray, result_vertices_m: FloatArray,
 
 
 def _cleaned_up(vertices_m: FloatArray, faces: Faces, config: RemeshConfig,
-                stats: dict[str, Any], angles: FloatArray | None = None
+                stats: dict[str, Any], angles: FloatArray | None = None, in_order: bool = False
                 ) -> tuple[TriangleMesh, dict[str, Any]]:
     """The angle clean-up of a mesh, and `stats` with its angle figures added (`angles`: the
-    faces' `triangle_angles_deg`, where they are already known)."""
+    faces' `triangle_angles_deg`, where they are already known). The mesh is put in a spatial
+    order first unless it is `in_order`, as the kernel's results are: it keeps its input's
+    order, which was spatial, and sorting them again cost as much as the clean-up gained
+    (the bunny's light remesh, 0.07 s each)."""
     angles = triangle_angles_deg(vertices_m, faces) if angles is None else angles
     stats["angles_before_cleanup"] = _angle_figures(angles, config)
-    vertices_m, faces, face_order = in_spatial_order(vertices_m, faces)
+    if not in_order:
+        vertices_m, faces, face_order = in_spatial_order(vertices_m, faces)
+        angles = angles[face_order]
     vertices_m, faces, angles, stats["angle_cleanup"] = enforce_angles(
-        vertices_m, faces, angles[face_order], config.min_angle_deg, config.max_angle_deg,
+        vertices_m, faces, angles, config.min_angle_deg, config.max_angle_deg,
         config.cleanup_passes)
     stats["angles"] = _angle_figures(angles, config)
     return TriangleMesh(vertices_m=vertices_m, faces=faces), stats
-
