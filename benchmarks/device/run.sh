@@ -1,15 +1,20 @@
 #!/usr/bin/env bash
-# On the device machine (carry .devpkgs .gl .meshes; see pack.sh): unpacks the carried
-# packages outside the image's own, then times the LDM per mesh on CUDA (JSON lines; also
-# under $OUT/perf.jsonl when the device tool gives an $OUT), then the light remesh in
-# pieces against one child ($OUT/remesh_speed.json).
-set -euo pipefail
+# On the device machine (carry .devpkgs .gl .meshes; see pack.sh): times the LDM per mesh on
+# CUDA with its stages (JSON lines, also in $OUT/perf.jsonl), profiles one bunny
+# ($OUT/prof_bunny.txt), then times the light remesh's variants ($OUT/remesh_speed.json).
+# About 3 minutes there (the twentieth session's H200), so one session's device time holds it
+# with its machine's start.
+set -uo pipefail
 source "$(dirname "$0")/setup.sh"
-out=${OUT:-.}/perf.jsonl
-timed() { python3 benchmarks/enhance.py --perf-child --meshes .meshes "$@" 2>/dev/null | tee -a "$out"; }
-for r in 0 0 1; do timed --device cuda --remesh-iterations "$r"; done
-for r in 0 1; do timed --device cuda --remesh-iterations "$r" --mesh beetle; done
-timed --device cpu --remesh-iterations 0
-# The light remesh's kernel in one child against one piece per core (16 there).
-python3 benchmarks/remesh_speed.py --meshes .meshes --repeats 3 2>/dev/null \
-  | tee "${OUT:-.}/remesh_speed.json"
+out=${OUT:-.}
+timed() {
+  python3 benchmarks/enhance.py --perf-child --meshes .meshes --device cuda "$@" \
+    2>>"$out/err.txt" | tee -a "$out/perf.jsonl"
+}
+timed --remesh-iterations 1
+timed --remesh-iterations 1
+timed --remesh-iterations 0
+timed --remesh-iterations 1 --profile "$out/prof_bunny.txt"
+timed --remesh-iterations 1 --mesh beetle
+python3 benchmarks/remesh_speed.py --meshes .meshes --repeats 1 --pieces 8 \
+  2>>"$out/err.txt" | tee "$out/remesh_speed.json"
