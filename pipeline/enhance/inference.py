@@ -32,10 +32,19 @@ def weights_to_bytes(state: dict[str, torch.Tensor], config: dict, half: bool = 
 
 
 def weights_from_bytes(data: bytes) -> tuple[dict[str, torch.Tensor], dict]:
-    """(state dict, model config) from safetensors bytes."""
+    """(state dict, model config) from safetensors bytes, floating tensors in float32."""
+    import torch
     from safetensors.torch import load
 
-    state = {k: v.float() if v.is_floating_point() else v for k, v in load(data).items()}
+    state = load(data)
+    floating = [k for k, v in state.items() if v.is_floating_point()]
+    if floating:
+        # One conversion for all of them, then views: one op per tensor (393 for the LDM)
+        # took 0.2 s on the device machine's host while the remesh's children started.
+        flat = torch.cat([state[k].reshape(-1) for k in floating]).float()
+        sizes = [state[k].numel() for k in floating]
+        for k, part in zip(floating, flat.split(sizes), strict=True):
+            state[k] = part.view(state[k].shape)
     # The metadata sits in the JSON header after an 8-byte length; load() does not return it.
     header_len = int.from_bytes(data[:8], "little")
     header = json.loads(data[8 : 8 + header_len])
