@@ -113,3 +113,13 @@ def faces_sharing_vertices(faces: torch.Tensor, vertex_count: int
     row_starts[1:] = torch.cumsum(torch.bincount(rows, minlength=face_count), 0)
     index = torch.int32 if len(keys) < 2**31 - 1 else torch.int64
     return row_starts.to(index), (keys % face_count).to(index)
+
+
+def boundary_half_edges(faces: torch.Tensor, vertex_count: int) -> torch.Tensor:
+    """(B, 2) int64 the directed edges of (F, 3) int64 faces, in their face's winding, that only
+    one face uses, in face then corner order (`boundary.boundary_half_edges`' order)."""
+    # Corner c's opposite edge runs from corner c + 1 to corner c + 2.
+    half = torch.stack([faces.roll(-1, dims=1), faces.roll(-2, dims=1)], dim=2).reshape(-1, 2)
+    keys = half.amin(dim=1) * vertex_count + half.amax(dim=1)
+    _, edge_of, uses = torch.unique(keys, return_inverse=True, return_counts=True)
+    return half[uses[edge_of] == 1]

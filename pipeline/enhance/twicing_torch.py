@@ -1,7 +1,6 @@
 """`twicing_blend.FieldOps` in torch on a device, built from the faces there: the mean
 operator, the smoothing step and the open boundary's offset (`boundary.boundary_offset`)
-never pass through scipy, so on a GPU the selector's candidates and features are made there
-with only the boundary's half-edges found on the host."""
+never pass through scipy, so on a GPU the selector's candidates and features are made there."""
 
 from __future__ import annotations
 
@@ -9,7 +8,6 @@ import numpy as np
 import torch
 
 from pipeline.enhance import mesh_torch
-from pipeline.enhance.boundary import boundary_half_edges
 from pipeline.enhance.device import on_device
 from pipeline.enhance.twicing_blend import FieldOps, leaving_out
 from pipeline.mesh import TriangleMesh
@@ -47,17 +45,16 @@ def boundary_offset(mesh: TriangleMesh, faces: torch.Tensor, mean: torch.Tensor,
     and 0.5); (V, 3) on the host, or None."""
     if pilot_iterations == 0:
         return None
-    half = boundary_half_edges(mesh.faces)
+    half = mesh_torch.boundary_half_edges(faces, mesh.vertex_count)
     if len(half) == 0:
         return None
     pilot = on_device(mesh.vertices_m, faces.device.type)
     for _ in range(pilot_iterations):
         pilot = half_step @ pilot
-    half_t = on_device(half, faces.device.type)
-    along = pilot[half_t[:, 1]] - pilot[half_t[:, 0]]
+    along = pilot[half[:, 1]] - pilot[half[:, 0]]
     tangent = torch.zeros_like(pilot)
     for end in (0, 1):
-        tangent.index_add_(0, half_t[:, end], along)
+        tangent.index_add_(0, half[:, end], along)
     across = torch.linalg.cross(mesh_torch.vertex_normals(pilot, faces).double(), tangent)
     length = torch.linalg.vector_norm(across, dim=1, keepdim=True)
     across = torch.where(length > 0, across / length.clamp_min(1e-300), 0.0)

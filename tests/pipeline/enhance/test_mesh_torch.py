@@ -69,3 +69,12 @@ def test_faces_sharing_vertices_is_mesh_repairs_pattern(mesh: TriangleMesh) -> N
     starts, columns = mesh_torch.faces_sharing_vertices(_faces(mesh), mesh.vertex_count)
     np.testing.assert_array_equal(starts.numpy(), expected.indptr)
     np.testing.assert_array_equal(columns.numpy(), expected.indices)
+
+
+@settings(max_examples=25, deadline=None)
+@given(mesh=MESHES)
+def test_boundary_half_edges_are_boundarys(mesh: TriangleMesh) -> None:
+    from pipeline.enhance.boundary import boundary_half_edges
+
+    got = mesh_torch.boundary_half_edges(_faces(mesh), mesh.vertex_count)
+    np.testing.assert_array_equal(got.numpy(), boundary_half_edges(mesh.faces))
