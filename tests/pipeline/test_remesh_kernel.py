@@ -4,6 +4,7 @@ same remesh as children started on demand, and nothing left behind."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from pipeline.remesh import RemeshConfig, remesh
 from pipeline.remesh_kernel import KernelChild, kernel_children
@@ -12,24 +13,17 @@ from tests.pipeline.test_remesh import _bumpy_sphere
 CONFIG = RemeshConfig(target_edge_length_m=0.03, iterations=2, kernel_processes=2)
 
 
-def test_children_started_ahead_give_the_same_remesh() -> None:
+@pytest.mark.parametrize("started", [2, 1], ids=["all", "fewer than the pieces"])
+def test_children_started_ahead_give_the_same_remesh(started: int) -> None:
+    """Two pieces: their children all started ahead, or one, the other started on demand."""
     source = _bumpy_sphere()
     on_demand, _ = remesh(source, CONFIG)
-    with kernel_children(2) as children:
-        started, stats = remesh(source, CONFIG, children)
+    with kernel_children(started) as children:
+        ahead, stats = remesh(source, CONFIG, children)
     assert stats["warning"] is None
-    np.testing.assert_array_equal(started.faces, on_demand.faces)
-    np.testing.assert_array_equal(started.vertices_m, on_demand.vertices_m)
+    np.testing.assert_array_equal(ahead.faces, on_demand.faces)
+    np.testing.assert_array_equal(ahead.vertices_m, on_demand.vertices_m)
     assert all(c.process.returncode == 0 and not c.folder.exists() for c in children)
-
-
-def test_fewer_children_than_pieces_start_the_rest() -> None:
-    source = _bumpy_sphere()
-    on_demand, _ = remesh(source, CONFIG)
-    with kernel_children(1) as children:
-        started, stats = remesh(source, CONFIG, children)
-    assert stats["warning"] is None
-    np.testing.assert_array_equal(started.faces, on_demand.faces)
 
 
 def test_unused_children_end_cleanly() -> None:
