@@ -84,10 +84,10 @@ def filtered_normals(vertices_m: FloatArray, faces: Faces, config: NormalFilterC
 
     inputs = (_face_inputs_there if accelerator(device) else _face_inputs)(
         vertices_m, faces, device)
-    normals, areas, starts, columns, centroids = inputs[:5]
-    spatial_sigma_m = config.spatial_sigma_edges * inputs[5]
+    starts, columns, centroids = inputs.row_starts, inputs.columns, inputs.centroids_m
+    spatial_sigma_m = config.spatial_sigma_edges * inputs.mean_edge_m
     shape = (len(faces), len(faces))
-    pattern = csr_tensor(starts, columns, normals.new_zeros(len(columns)), shape)
+    pattern = csr_tensor(starts, columns, centroids.new_zeros(len(columns)), shape)
 
     def pair_products(field: torch.Tensor) -> torch.Tensor:
         """(P,) each neighbour pair's product of `field`'s rows, in the pattern's order."""
@@ -98,8 +98,8 @@ def filtered_normals(vertices_m: FloatArray, faces: Faces, config: NormalFilterC
     gap_m2 = (squared.repeat_interleave(starts.diff()) + squared[columns]
               - 2.0 * pair_products(centroids)).clamp_min(0.0)
     # A face is its own neighbour: at no distance and alike, its weight is its area.
-    near = areas[columns] * torch.exp(-gap_m2 / (2 * spatial_sigma_m**2))
-    n = normals
+    near = inputs.areas_m2[columns] * torch.exp(-gap_m2 / (2 * spatial_sigma_m**2))
+    n = inputs.normals
     for _ in range(config.normal_iterations):
         # |n_f - n_g|² = 2 - 2 n_f·n_g for unit normals.
         likeness = pair_products(n)
@@ -110,11 +110,23 @@ def filtered_normals(vertices_m: FloatArray, faces: Faces, config: NormalFilterC
     return n.cpu().numpy()
 
 
-FaceInputs = tuple["torch.Tensor", "torch.Tensor", "torch.Tensor", "torch.Tensor",
-                   "torch.Tensor", float]
-"""On the filter's device: (F, 3) unit face normals, (F,) areas, the CSR row starts and
-columns of the faces sharing a vertex with each face (`face_neighbours`), (F, 3) centroids
-about their mean, metres; and the mean edge length, metres."""
+@dataclass(frozen=True)
+class FaceInputs:
+    """What the filter reads of the faces, on its device."""
+
+    normals: torch.Tensor
+    """(F, 3) unit face normals."""
+    areas_m2: torch.Tensor
+    """(F,) face areas, square metres."""
+    row_starts: torch.Tensor
+    """(F + 1,) CSR row starts of the faces sharing a vertex with each face
+    (`face_neighbours`)."""
+    columns: torch.Tensor
+    """(P,) those faces."""
+    centroids_m: torch.Tensor
+    """(F, 3) face centroids about their mean, metres."""
+    mean_edge_m: float
+    """The mean edge length, metres."""
 
 
 def _face_inputs(vertices_m: FloatArray, faces: Faces, device: str) -> FaceInputs:
@@ -124,10 +136,10 @@ def _face_inputs(vertices_m: FloatArray, faces: Faces, device: str) -> FaceInput
     other, row_starts = face_neighbours(faces, len(vertices_m))
     starts, columns = csr_indices(row_starts, other, device)
     centroids_m = vertices_m[faces].mean(axis=1)
-    return (on_device(face_normals(vertices_m, faces), device),
-            on_device(face_areas(vertices_m, faces), device), starts, columns,
-            on_device(centroids_m - centroids_m.mean(axis=0), device),
-            mean_edge_length_m(TriangleMesh(vertices_m=vertices_m, faces=faces)))
+    return FaceInputs(on_device(face_normals(vertices_m, faces), device),
+                      on_device(face_areas(vertices_m, faces), device), starts, columns,
+                      on_device(centroids_m - centroids_m.mean(axis=0), device),
+                      mean_edge_length_m(TriangleMesh(vertices_m=vertices_m, faces=faces)))
 
 
 def _face_inputs_there(vertices_m: FloatArray, faces: Faces, device: str) -> FaceInputs:
@@ -144,9 +156,9 @@ def _face_inputs_there(vertices_m: FloatArray, faces: Faces, device: str) -> Fac
     cross = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     starts, columns = mesh_torch.faces_sharing_vertices(f, len(vertices_m))
     centroids_m = tri.mean(dim=1)
-    return (mesh_torch.face_normals(v, f), 0.5 * torch.linalg.vector_norm(cross, dim=1),
-            starts, columns, centroids_m - centroids_m.mean(dim=0),
-            mesh_torch.mean_edge_length_m(v, f))
+    return FaceInputs(mesh_torch.face_normals(v, f), 0.5 * torch.linalg.vector_norm(cross, dim=1),
+                      starts, columns, centroids_m - centroids_m.mean(dim=0),
+                      mesh_torch.mean_edge_length_m(v, f))
 
 
 def fit_to_normals(vertices_m: FloatArray, faces: Faces, normals: FloatArray,
