@@ -24,6 +24,8 @@ from pipeline.mesh_repair import (
     edge_table,
     faces_at,
     faces_per_edge,
+    row_max,
+    row_min,
     triangle_angles_deg,
 )
 
@@ -71,7 +73,7 @@ def flip_caps(vertices_m: FloatArray, faces: Faces, angles_deg: FloatArray,
     better (larger smallest angle) and keeps the surface unfolded. `angles_deg` (F, 3) are
     the faces' `triangle_angles_deg`. Returns faces, their angles, flips."""
     angles = angles_deg
-    cand_face = np.nonzero(_row_max(angles) > max_angle_deg)[0]
+    cand_face = np.nonzero(row_max(angles) > max_angle_deg)[0]
     if len(cand_face) == 0:
         return faces, angles, 0
     near, edges, opposite, row = _near_edge_table(faces, cand_face, len(vertices_m))
@@ -94,10 +96,10 @@ def flip_caps(vertices_m: FloatArray, faces: Faces, angles_deg: FloatArray,
     q = faces[other_face, other_corner]
     new_f = np.column_stack([p, a, q]).astype(np.int32)
     new_g = np.column_stack([p, q, b]).astype(np.int32)
-    old_min = np.minimum(angles[cand_face].min(axis=1), angles[other_face].min(axis=1))
+    old_min = np.minimum(row_min(angles[cand_face]), row_min(angles[other_face]))
     f_angles = triangle_angles_deg(vertices_m, new_f)
     g_angles = triangle_angles_deg(vertices_m, new_g)
-    new_min = np.minimum(f_angles.min(axis=1), g_angles.min(axis=1))
+    new_min = np.minimum(row_min(f_angles), row_min(g_angles))
     old_n = face_normals(vertices_m, faces[cand_face]) + face_normals(vertices_m,
                                                                       faces[other_face])
     unfolded = ((np.sum(face_normals(vertices_m, new_f) * old_n, axis=1) > 0.5)
@@ -111,7 +113,7 @@ def flip_caps(vertices_m: FloatArray, faces: Faces, angles_deg: FloatArray,
     unique_new = key_counts[np.searchsorted(np.unique(pair_key), pair_key)] == 1
     good = (new_min > old_min) & unfolded & fresh & unique_new
     chosen = np.nonzero(good)[0]
-    chosen = chosen[_rank_claims(-angles[cand_face[chosen]].max(axis=1),
+    chosen = chosen[_rank_claims(-row_max(angles[cand_face[chosen]]),
                                  [cand_face[chosen], other_face[chosen]], len(faces))]
     out, out_angles = faces.copy(), angles.copy()
     out[cand_face[chosen]], out_angles[cand_face[chosen]] = new_f[chosen], f_angles[chosen]
@@ -126,7 +128,7 @@ def collapse_needles(vertices_m: FloatArray, faces: Faces, angles_deg: FloatArra
     `angles_deg` (F, 3) are the faces' `triangle_angles_deg`. Returns the mesh, its faces'
     angles, collapses."""
     angles = angles_deg
-    cand_face = np.nonzero(_row_min(angles) < min_angle_deg)[0]
+    cand_face = np.nonzero(row_min(angles) < min_angle_deg)[0]
     if len(cand_face) == 0:
         return vertices_m, faces, angles, 0
     _, edges, opposite, row = _near_edge_table(faces, cand_face, len(vertices_m))
@@ -228,7 +230,7 @@ def drop_boundary_slivers(vertices_m: FloatArray, faces: Faces, angles_deg: Floa
     `angles_deg` (F, 3) are the faces' `triangle_angles_deg`. Returns faces, their angles,
     drops."""
     angles = angles_deg
-    cand = np.nonzero((_row_min(angles) < min_angle_deg) | (_row_max(angles) > max_angle_deg))[0]
+    cand = np.nonzero((row_min(angles) < min_angle_deg) | (row_max(angles) > max_angle_deg))[0]
     if len(cand) == 0:
         return faces, angles, 0
     _, edges, opposite, row = _near_edge_table(faces, cand, len(vertices_m))
@@ -241,22 +243,12 @@ def drop_boundary_slivers(vertices_m: FloatArray, faces: Faces, angles_deg: Floa
     cand = cand[(n_boundary == 2) | ((n_boundary == 1) & ~boundary_vertex[apex])]
     if len(cand) == 0:
         return faces, angles, 0
-    priority = angles[cand].min(axis=1)
+    priority = row_min(angles[cand])
     chosen = cand[_rank_claims(priority, [faces[cand, 0], faces[cand, 1], faces[cand, 2]],
                                len(vertices_m))]
     keep = np.ones(len(faces), dtype=bool)
     keep[chosen] = False
     return faces[keep], angles[keep], len(chosen)
-
-
-def _row_min(angles_deg: FloatArray) -> FloatArray:
-    """(F,) each row's smallest of (F, 3); twice as fast as a reduction along the rows."""
-    return np.minimum(np.minimum(angles_deg[:, 0], angles_deg[:, 1]), angles_deg[:, 2])
-
-
-def _row_max(angles_deg: FloatArray) -> FloatArray:
-    """(F,) each row's largest of (F, 3)."""
-    return np.maximum(np.maximum(angles_deg[:, 0], angles_deg[:, 1]), angles_deg[:, 2])
 
 
 def enforce_angles(vertices_m: FloatArray, faces: Faces, angles_deg: FloatArray,

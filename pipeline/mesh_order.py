@@ -15,6 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from pipeline.mesh import TriangleMesh
+from pipeline.mesh_repair import row_min
 
 MORTON_BITS = 10
 """Bits per axis of the Morton code: a 1024³ grid over the bounding cube, cells smaller than
@@ -51,7 +52,7 @@ def spatial_order(mesh: TriangleMesh) -> MeshOrder:
     """Vertices along the Morton curve; faces by their first vertex in that order."""
     vertex_order = np.argsort(morton_codes(mesh.vertices_m), kind="stable")
     new_index = _inverse(vertex_order)
-    face_order = np.argsort(new_index[mesh.faces].min(axis=1), kind="stable")
+    face_order = np.argsort(row_min(new_index[mesh.faces]), kind="stable")
     return MeshOrder(vertex_order=vertex_order, face_order=face_order)
 
 

@@ -23,7 +23,7 @@ from pipeline.angle_cleanup import enforce_angles
 from pipeline.boundary_split import split_boundary_edges
 from pipeline.mesh import TriangleMesh
 from pipeline.mesh_order import in_spatial_order
-from pipeline.mesh_repair import repair, triangle_angles_deg
+from pipeline.mesh_repair import repair, row_max, row_min, triangle_angles_deg
 from pipeline.remesh_kernel import (
     Faces,
     FloatArray,
@@ -145,9 +145,10 @@ def _angle_figures(angles: FloatArray, config: RemeshConfig) -> dict[str, float]
     if len(angles) == 0:
         return {"min_angle_deg": 0.0, "max_angle_deg": 0.0, "share_below_min": 0.0,
                 "share_above_max": 0.0}
-    return {"min_angle_deg": float(angles.min()), "max_angle_deg": float(angles.max()),
-            "share_below_min": float(np.mean(angles.min(axis=1) < config.min_angle_deg)),
-            "share_above_max": float(np.mean(angles.max(axis=1) > config.max_angle_deg))}
+    smallest, largest = row_min(angles), row_max(angles)
+    return {"min_angle_deg": float(smallest.min()), "max_angle_deg": float(largest.max()),
+            "share_below_min": float(np.mean(smallest < config.min_angle_deg)),
+            "share_above_max": float(np.mean(largest > config.max_angle_deg))}
 
 
 def _outside(angles: dict[str, float]) -> float:
