@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # On the device machine (carry .devpkgs .gl .meshes; see pack.sh): times the LDM per mesh on
 # CUDA with its stages (JSON lines, also in $OUT/perf.jsonl), profiles one bunny
-# ($OUT/prof_bunny.txt), then times the light remesh's variants ($OUT/remesh_speed.json).
+# ($OUT/prof_bunny.txt), times the light remesh's variants ($OUT/remesh_speed.json), then runs
+# the tests that need CUDA.
 # About 3 minutes there (the twentieth session's H200), so one session's device time holds it
 # with its machine's start.
 set -uo pipefail
@@ -18,3 +19,7 @@ timed --remesh-iterations 1 --profile "$out/prof_bunny.txt"
 timed --remesh-iterations 1 --mesh beetle
 python3 benchmarks/remesh_speed.py --meshes .meshes --repeats 1 --pieces 8 \
   2>>"$out/err.txt" | tee "$out/remesh_speed.json"
+# The tests that need CUDA (skipped elsewhere), where the image has pytest.
+if python3 -c "import pytest, hypothesis" 2>/dev/null; then
+  python3 -m pytest -q -p no:cacheprovider tests/pipeline/enhance -k cuda 2>&1 | tail -5
+fi
