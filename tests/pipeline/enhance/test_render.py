@@ -3,7 +3,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.enhance.render import make_views, project, render_depth, view_directions
+from pipeline.enhance.render import (
+    DepthRenders,
+    make_views,
+    project,
+    render_depth,
+    view_directions,
+)
+from pipeline.mesh import TriangleMesh
 
 
 def test_axis_views_first_then_spread():
@@ -85,7 +92,7 @@ def test_bad_input_is_named():
 
 def _coloured(mesh, seed=0):
     colors = np.random.default_rng(seed).integers(0, 256, (mesh.vertex_count, 3), np.uint8)
-    return mesh.__class__(mesh.vertices_m, mesh.faces, vertex_colors=colors)
+    return TriangleMesh(mesh.vertices_m, mesh.faces, vertex_colors=colors)
 
 
 def _assert_agrees(ray_cast, rasterized, max_disagreeing=0.002):
@@ -112,7 +119,7 @@ def _open_bowl():
 
     whole = sphere(0.5, 20)
     keep = whole.vertices_m[whole.faces].mean(axis=1)[:, 2] < 0.2
-    return whole.__class__(whole.vertices_m, whole.faces[keep])
+    return TriangleMesh(whole.vertices_m, whole.faces[keep])
 
 
 @pytest.mark.parametrize("dtype", ["float64", "float32"])
@@ -126,8 +133,7 @@ def test_rasterizer_matches_ray_cast_on_sphere(unit_sphere, dtype):
     depth, valid, color = rasterize_depth(
         mesh.vertices_m, mesh.faces, views, "cpu", mesh.vertex_colors,
         dtype=getattr(torch, dtype))
-    _assert_agrees(render_depth(mesh, views), render_depth(mesh, views)
-                   .__class__(views, depth, valid, color))
+    _assert_agrees(render_depth(mesh, views), DepthRenders(views, depth, valid, color))
 
 
 def test_rasterizer_matches_ray_cast_on_open_boundary():
@@ -187,7 +193,7 @@ def test_rasterizer_matches_ray_cast_in_any_pose(quaternion, scale, shift, n_vie
     # The shift is in the mesh's own size: far from the origin, float32 ray origins would lose
     # the depth precision the comparison asks for.
     vertices_m = scale * (bumpy @ _rotation(quaternion).T + np.asarray(shift))
-    mesh = _coloured(bowl.__class__(vertices_m, bowl.faces), seed)
+    mesh = _coloured(TriangleMesh(vertices_m, bowl.faces), seed)
     views = make_views(mesh.vertices_m, view_directions(n_views), 48)
     _assert_agrees(render_depth(mesh, views), render_depth(mesh, views, device="cpu"))
 
