@@ -46,9 +46,7 @@ def neighbourhood_range(values: torch.Tensor, pattern: mesh_torch.NeighbourPatte
 
 def closed_mean(pattern: mesh_torch.NeighbourPattern) -> torch.Tensor:
     """(V, V) sparse CSR float64: row i averages i and its neighbours."""
-    rows, vertex_count = pattern.rows, pattern.vertex_count
-    values = (1.0 / (pattern.neighbour_count + 1).to(torch.float64))[rows]
-    row_starts = torch.zeros(vertex_count + 1, dtype=torch.int64, device=rows.device)
-    row_starts[1:] = torch.cumsum(pattern.neighbour_count + 1, 0)
-    return csr_tensor(row_starts.int(), pattern.columns.int(), values,
-                      (vertex_count, vertex_count))
+    count = pattern.vertex_count
+    values = (1.0 / (pattern.neighbour_count + 1).to(torch.float64))[pattern.rows]
+    return csr_tensor(*mesh_torch.csr_rows(pattern.rows, pattern.columns, count), values,
+                      (count, count))

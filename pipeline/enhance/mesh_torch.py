@@ -82,11 +82,7 @@ def mean_operator(pattern: NeighbourPattern, self_weight: float = 0.0,
     neighbour_weight = (1.0 - self_weight) / count.clamp_min(1).to(torch.float64)
     diagonal = self_weight + (1.0 - self_weight) * lonely
     values = torch.where(on_diagonal, diagonal[rows], neighbour_weight[rows])
-    row_starts = torch.zeros(pattern.vertex_count + 1, dtype=torch.int64, device=rows.device)
-    row_starts[1:] = torch.cumsum(torch.bincount(rows, minlength=pattern.vertex_count), 0)
-    # int32 indices where they fit: torch's CPU kernel for int64 ones ran 20 times slower.
-    index = torch.int32 if len(rows) < 2**31 - 1 else torch.int64
-    return csr_tensor(row_starts.to(index), columns.to(index), values.to(dtype),
+    return csr_tensor(*csr_rows(rows, columns, pattern.vertex_count), values.to(dtype),
                       (pattern.vertex_count, pattern.vertex_count))
 
 
@@ -108,11 +104,7 @@ def faces_sharing_vertices(faces: torch.Tensor, vertex_count: int
         shares)
     partner = first[corner_vertex[by_vertex]].repeat_interleave(shares) + within
     keys = torch.unique(face_of.repeat_interleave(shares) * face_count + face_of[partner])
-    rows = keys // face_count
-    row_starts = torch.zeros(face_count + 1, dtype=torch.int64, device=faces.device)
-    row_starts[1:] = torch.cumsum(torch.bincount(rows, minlength=face_count), 0)
-    index = torch.int32 if len(keys) < 2**31 - 1 else torch.int64
-    return row_starts.to(index), (keys % face_count).to(index)
+    return csr_rows(keys // face_count, keys % face_count, face_count)
 
 
 def boundary_half_edges(faces: torch.Tensor, vertex_count: int) -> torch.Tensor:
@@ -123,3 +115,14 @@ def boundary_half_edges(faces: torch.Tensor, vertex_count: int) -> torch.Tensor:
     keys = half.amin(dim=1) * vertex_count + half.amax(dim=1)
     _, edge_of, uses = torch.unique(keys, return_inverse=True, return_counts=True)
     return half[uses[edge_of] == 1]
+
+
+def csr_rows(rows: torch.Tensor, columns: torch.Tensor, row_count: int
+             ) -> tuple[torch.Tensor, torch.Tensor]:
+    """CSR row starts (row_count + 1,) and columns of entries given by (E,) ascending `rows`
+    and their `columns`, int32 where they fit: torch's CPU kernel for int64 ones ran 20 times
+    slower, and on any device sparse products read half the index bytes."""
+    row_starts = torch.zeros(row_count + 1, dtype=torch.int64, device=rows.device)
+    row_starts[1:] = torch.cumsum(torch.bincount(rows, minlength=row_count), 0)
+    index = torch.int32 if len(rows) < 2**31 - 1 else torch.int64
+    return row_starts.to(index), columns.to(index)

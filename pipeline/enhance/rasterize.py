@@ -43,7 +43,7 @@ def rasterize_depth(
         dtype = torch.float64 if dev.type == "cpu" else torch.float32
     # Projection in float64 on the device: only the mesh itself crosses from the host.
     vertices = torch.from_numpy(np.ascontiguousarray(vertices_m, np.float64)).to(dev)
-    pix, z_n = (t.to(dtype) for t in _project_px(vertices, views))  # (N, V, 2), (N, V)
+    pix, z_n = (t.to(dtype) for t in project_px(vertices, views))  # (N, V, 2), (N, V)
     face_idx = torch.from_numpy(np.ascontiguousarray(faces)).to(dev).long()  # (F, 3)
     keys = _nearest_keys(pix, z_n, face_idx, views.resolution, max_candidates)
     valid = keys != _NO_HIT
@@ -61,10 +61,10 @@ def rasterize_depth(
     )
 
 
-def _project_px(vertices_m: torch.Tensor, views: ViewSet) -> tuple[torch.Tensor, torch.Tensor]:
+def project_px(vertices_m: torch.Tensor, views: ViewSet) -> tuple[torch.Tensor, torch.Tensor]:
     """Vertex positions (N, V, 2) as (column, row) in pixels, pixel centres on integers, and
     normalised depth (N, V) from each view's near plane, of `vertices_m` (V, 3), in its dtype
-    and on its device."""
+    and on its device: `render.project` in torch."""
     axes = np.stack([views.rights, views.downs, views.forwards], axis=1)  # (N, 3, 3)
     axes_t = torch.from_numpy(axes).to(vertices_m.device, vertices_m.dtype)
     center = torch.from_numpy(views.center_m).to(vertices_m.device, vertices_m.dtype)

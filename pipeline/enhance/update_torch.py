@@ -13,7 +13,8 @@ from numpy.typing import NDArray
 from pipeline.enhance.baselines import mean_operator
 from pipeline.enhance.device import csr_on_device, on_device
 from pipeline.enhance.mesh_torch import face_normals, vertex_normals
-from pipeline.enhance.render import DepthRenders, ViewSet
+from pipeline.enhance.rasterize import project_px
+from pipeline.enhance.render import DepthRenders
 from pipeline.enhance.update import UpdateConfig, ViewSteps
 from pipeline.mesh import TriangleMesh
 
@@ -35,7 +36,8 @@ def view_steps_on(
     normals = smoothed_normals(vertices_m, faces, csr_on_device(mean_op, device),
                                config.normal_smoothing)
     forwards = on_device(np.asarray(views.forwards, np.float64), device)
-    cols_all, rows_all, depth_all_n = project(vertices_m, views, device)
+    pix, depth_all_n = project_px(vertices_m, views)
+    cols_all, rows_all = pix[..., 0], pix[..., 1]
     cos_all = -(forwards @ normals.T)
     res = views.resolution
     # Only vertices inside a view and facing it can be seen there: the lookups run on those
@@ -138,19 +140,6 @@ def bilinear(
     nearest = (pixels.view_offset + torch.clamp(torch.round(pixels.rows).long(), 0, side - 1)
                * side + torch.clamp(torch.round(pixels.cols).long(), 0, side - 1))
     return torch.where(ok, bil, flat[nearest].double()), ok | flat_valid[nearest]
-
-
-def project(vertices_m: torch.Tensor, views: ViewSet, device: str
-            ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """`render.project` of (V, 3) vertices on `device`: (K, V) continuous columns, rows and
-    normalised depth."""
-    rel_m = vertices_m - on_device(np.asarray(views.center_m, np.float64), device)
-    axes = on_device(np.stack([views.rights, views.downs, views.forwards]).astype(np.float64),
-                     device)
-    x_m, y_m, z_m = axes @ rel_m.T  # (3, K, V)
-    scale = views.resolution / (2.0 * views.half_extent_m)
-    return ((x_m + views.half_extent_m) * scale - 0.5, (y_m + views.half_extent_m) * scale - 0.5,
-            (z_m + views.half_extent_m) / views.depth_range_m)
 
 
 def smoothed_normals(vertices_m: torch.Tensor, faces: torch.Tensor, mean_op: torch.Tensor,
