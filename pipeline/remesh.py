@@ -29,7 +29,9 @@ from pipeline.remesh_kernel import (
     FloatArray,
     KernelChild,
     KernelOutcome,
-    boundary_split_kernel,
+    KernelResult,
+    furthest_from_m,
+    measured_kernel,
     start_isolated,
 )
 
@@ -103,23 +105,29 @@ def kernel_piece_count(face_count: int, processes: int | None) -> int:
 
 
 def start_kernel(vertices_m: FloatArray, faces: Faces, config: RemeshConfig,
-                 children: Sequence[KernelChild] = ()) -> Callable[[], KernelOutcome]:
+                 children: Sequence[KernelChild] = (), measure_lost: bool = False
+                 ) -> Callable[[], KernelOutcome]:
     """`start_isolated` on the whole mesh, or, where it is cut into more than one piece
     (`kernel_piece_count`), the boundary split here, then one child per spatial piece
     (`remesh_pieces`); the call that waits joins them. One piece failing fails the whole.
-    The started `children` are used first (the caller ends any left), then new ones."""
+    The started `children` are used first (the caller ends any left), then new ones.
+
+    Each piece's `lost_m` (`measure_lost`) is measured against its own result, a part of the
+    whole's, so the joined figure, their greatest, can only be above the whole's: at most by
+    an edge, near a cut, where the cut's held vertices are in both."""
     count = kernel_piece_count(len(faces), config.kernel_processes)
     ready: list[KernelChild | None] = [*children[:count], *[None] * (count - len(children))]
     edge_m, iterations = config.target_edge_length_m, config.iterations
     if count == 1:
         return start_isolated(vertices_m, faces, edge_m, iterations, config.timeout_s,
-                              child=ready[0])
+                              child=ready[0], measure_lost=measure_lost)
     from pipeline.remesh_pieces import spatial_pieces, stitched
 
     vertices_m, faces, _ = in_spatial_order(*split_boundary_edges(vertices_m, faces, edge_m))
     pieces = spatial_pieces(faces, count)
     waits = [start_isolated(vertices_m[p.vertex_ids], p.faces, edge_m, iterations,
-                            config.timeout_s, split=False, child=child)
+                            config.timeout_s, split=False, child=child,
+                            measure_lost=measure_lost)
              for p, child in zip(pieces, ready, strict=True)]
 
     def wait() -> KernelOutcome:
@@ -127,10 +135,16 @@ def start_kernel(vertices_m: FloatArray, faces: Faces, config: RemeshConfig,
         failed = [f"piece {k}: {why}" for k, (_, why) in enumerate(outcomes) if why]
         if failed:
             return None, "; ".join(failed)
+        results = [r for r, _ in outcomes if r is not None]
         try:
-            return stitched(vertices_m, pieces, [r for r, _ in outcomes if r is not None]), None
+            joined_m, joined = stitched(vertices_m, pieces,
+                                        [(r.vertices_m, r.faces) for r in results])
         except ValueError as exc:
             return None, str(exc)
+        # The stitch keeps the pieces' faces in their order, so their angles follow them.
+        lost_m = max(r.lost_m or 0.0 for r in results) if measure_lost else None
+        return KernelResult(joined_m, joined, np.concatenate([r.angles_deg for r in results]),
+                            lost_m), None
 
     return wait
 
@@ -161,9 +175,10 @@ def remesh(mesh: TriangleMesh, config: RemeshConfig, children: Sequence[KernelCh
     where the kernel runs in a child, the seconds the caller waited for it (`kernel_wait_s`).
 
     Where the kernel's result may be dropped (`max_kernel_added_outside`,
-    `max_kernel_lost_edges`) and it runs in a child, the input is cleaned up while the child
-    runs: that is the answer wherever the kernel is dropped or fails, so choosing costs no
-    second clean-up after the kernel's. The kernel's children may have been started ahead
+    `max_kernel_lost_edges`), the figures it is judged by are measured in its children
+    (`KernelResult`), and the input is cleaned up only where it is dropped: cleaning it up
+    beside the children, in case, was the caller's longest step on 16 cores (the bunny's
+    light remesh, 0.35 s of 1.0). The kernel's children may have been started ahead
     (`children`: `remesh_kernel.kernel_children`).
     """
     vertices, faces, removed = repair(mesh.vertices_m, mesh.faces, config.min_component_share)
@@ -174,32 +189,28 @@ def remesh(mesh: TriangleMesh, config: RemeshConfig, children: Sequence[KernelCh
         return _cleaned_up(vertices, faces, config, stats)
     judged = (config.max_kernel_added_outside is not None
               or config.max_kernel_lost_edges is not None)
-    input_cleaned = None
+    measure_lost = config.max_kernel_lost_edges is not None
+    given = None
     if config.isolate:
-        wait = start_kernel(vertices, faces, config, children)
-        if judged:
-            input_cleaned = _cleaned_up(vertices, faces, config, dict(stats))
+        wait = start_kernel(vertices, faces, config, children, measure_lost)
+        given = triangle_angles_deg(vertices, faces) if judged else None
         waited_from = time.perf_counter()
         result, warning = wait()
         stats["kernel_wait_s"] = time.perf_counter() - waited_from
     else:
-        result, warning = boundary_split_kernel(vertices, faces, config.target_edge_length_m,
-                                                 config.iterations), None
+        result, warning = measured_kernel(vertices, faces, config.target_edge_length_m,
+                                          config.iterations, True, measure_lost), None
     stats["warning"] = warning and f"{warning}; kept the unremeshed mesh"
     if result is not None and judged:
-        given = (input_cleaned[1]["angles_before_cleanup"] if input_cleaned is not None
-                 else angle_stats(vertices, faces, config))
-        made = triangle_angles_deg(*result)
-        stats["kernel_kept"] = _kernel_passes(vertices, result[0], given, made, config, stats)
-        if stats["kernel_kept"]:
-            return _cleaned_up(*result, config, stats, made, in_order=True)
-        result = None
+        given = triangle_angles_deg(vertices, faces) if given is None else given
+        stats["kernel_kept"] = _kernel_passes(_angle_figures(given, config), result, config,
+                                              stats)
+        if not stats["kernel_kept"]:
+            return _cleaned_up(vertices, faces, config, stats, given)
     if result is not None:
-        return _cleaned_up(*result, config, stats, in_order=True)
-    if input_cleaned is not None:
-        input_cleaned[1].update(stats)
-        return input_cleaned
-    return _cleaned_up(vertices, faces, config, stats)
+        return _cleaned_up(result.vertices_m, result.faces, config, stats, result.angles_deg,
+                           in_order=True)
+    return _cleaned_up(vertices, faces, config, stats, given)
 
 
 def surface_lost_edges(input_vertices_m: FloatArray, result_vertices_m: FloatArray,
@@ -209,25 +220,21 @@ def surface_lost_edges(input_vertices_m: FloatArray, result_vertices_m: FloatArr
     kept faces far longer than `edge_m` (an upper bound of how far the input's vertices are
     from the result's surface). 0.6-1.0 for a kernel round that kept the surface (the
     benchmark's ten updates)."""
-    from scipy.spatial import cKDTree
-
-    distance_m, _ = cKDTree(result_vertices_m).query(input_vertices_m, workers=-1)
-    return float(distance_m.max()) / edge_m
+    return furthest_from_m(input_vertices_m, result_vertices_m) / edge_m
 
 
-def _kernel_passes(input_vertices_m: FloatArray, result_vertices_m: FloatArray,
-                   given: dict[str, float], made: FloatArray, config: RemeshConfig,
+def _kernel_passes(given: dict[str, float], result: KernelResult, config: RemeshConfig,
                    stats: dict[str, Any]) -> bool:
     """Whether the kernel's result meets `max_kernel_added_outside` (against the angle
-    figures it was `given`; `made`: the result's `triangle_angles_deg`) and
-    `max_kernel_lost_edges`; the figures go into `stats`."""
+    figures it was `given`) and `max_kernel_lost_edges` (its `lost_m`, in target edge
+    lengths, as `surface_lost_edges`); the figures go into `stats`."""
     passes = True
     if config.max_kernel_added_outside is not None:
-        added = _outside(_angle_figures(made, config)) - _outside(given)
+        added = _outside(_angle_figures(result.angles_deg, config)) - _outside(given)
         passes = added <= config.max_kernel_added_outside
     if config.max_kernel_lost_edges is not None:
-        stats["kernel_lost_edges"] = surface_lost_edges(
-            input_vertices_m, result_vertices_m, config.target_edge_length_m)
+        assert result.lost_m is not None  # asked for wherever the limit is set
+        stats["kernel_lost_edges"] = result.lost_m / config.target_edge_length_m
         passes = passes and stats["kernel_lost_edges"] <= config.max_kernel_lost_edges
     return passes
 

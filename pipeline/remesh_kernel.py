@@ -18,6 +18,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -25,12 +26,30 @@ from numpy.typing import NDArray
 
 from pipeline.boundary_split import split_boundary_edges
 from pipeline.mesh_order import in_spatial_order
-from pipeline.mesh_repair import edge_table, faces_per_edge
+from pipeline.mesh_repair import edge_table, faces_per_edge, triangle_angles_deg
 
 FloatArray = NDArray[np.float64]
 Faces = NDArray[np.int32]
-KernelOutcome = tuple[tuple[FloatArray, Faces] | None, str | None]
-"""The kernel's (vertices, faces), or None and why it failed."""
+
+
+@dataclass(frozen=True)
+class KernelResult:
+    """The kernel's mesh, with the figures the caller judges it by, measured where it ran (in
+    the kernel's children, side by side, rather than after them in the caller)."""
+
+    vertices_m: FloatArray
+    """(V, 3) the result's vertices, the held ones first."""
+    faces: Faces
+    """(F, 3) the result's faces."""
+    angles_deg: FloatArray
+    """(F, 3) `triangle_angles_deg` of the result."""
+    lost_m: float | None
+    """How far the kernel's input vertex furthest from every vertex of the result lies from
+    them, metres (`furthest_from_m`); None where it was not asked for."""
+
+
+KernelOutcome = tuple[KernelResult | None, str | None]
+"""The kernel's result, or None and why it failed."""
 
 
 def kernel(vertices_m: FloatArray, faces: Faces, edge_m: float, iterations: int
@@ -71,6 +90,25 @@ def boundary_split_kernel(vertices_m: FloatArray, faces: Faces, edge_m: float,
     return kernel(v, f, edge_m, iterations)
 
 
+def furthest_from_m(input_vertices_m: FloatArray, result_vertices_m: FloatArray) -> float:
+    """How far the vertex of `input_vertices_m` furthest from every vertex of
+    `result_vertices_m` lies from them, metres."""
+    from scipy.spatial import cKDTree
+
+    distance_m, _ = cKDTree(result_vertices_m).query(input_vertices_m, workers=-1)
+    return float(distance_m.max())
+
+
+def measured_kernel(vertices_m: FloatArray, faces: Faces, edge_m: float, iterations: int,
+                    split: bool, measure_lost: bool) -> KernelResult:
+    """`boundary_split_kernel` (where `split`) or `kernel`, with the result's angles and, where
+    `measure_lost`, how far the input's vertices are from it (`furthest_from_m`)."""
+    run = boundary_split_kernel if split else kernel
+    out_v, out_f = run(vertices_m, faces, edge_m, iterations)
+    lost_m = furthest_from_m(vertices_m, out_v) if measure_lost else None
+    return KernelResult(out_v, out_f, triangle_angles_deg(out_v, out_f), lost_m)
+
+
 class KernelChild:
     """A child interpreter (``python -m pipeline.remesh_kernel``) that has imported the kernel
     and waits on its stdin for one request: the paths of a request .npz and of the result
@@ -91,16 +129,19 @@ class KernelChild:
                                             if p)
         with open(self.folder / "stderr.txt", "wb") as stderr:
             self.process = subprocess.Popen(
-                [sys.executable, "-m", "pipeline.remesh_kernel"], stdin=subprocess.PIPE,
+                [sys.executable, "-P", "-m", "pipeline.remesh_kernel"], stdin=subprocess.PIPE,
                 stdout=subprocess.DEVNULL, stderr=stderr, env=env)
 
     def submit(self, vertices_m: FloatArray, faces: Faces, edge_m: float, iterations: int,
-               timeout_s: float, split: bool) -> Callable[[], KernelOutcome]:
-        """Hands the child its request and returns a call that waits for the outcome."""
+               timeout_s: float, split: bool, measure_lost: bool = False
+               ) -> Callable[[], KernelOutcome]:
+        """Hands the child its request (`measured_kernel`'s arguments) and returns a call that
+        waits for the outcome."""
         request, result = self.folder / "request.npz", self.folder / "result.npz"
         np.savez(request, vertices_m=np.asarray(vertices_m, np.float64),
                  faces=np.asarray(faces, np.int32), edge_m=np.float64(edge_m),
-                 iterations=np.int64(iterations), split=np.bool_(split))
+                 iterations=np.int64(iterations), split=np.bool_(split),
+                 measure_lost=np.bool_(measure_lost))
         assert self.process.stdin is not None
         try:
             self.process.stdin.write(f"{request}\t{result}\n".encode())
@@ -152,13 +193,13 @@ def kernel_children(count: int) -> Iterator[list[KernelChild]]:
 
 
 def start_isolated(vertices_m: FloatArray, faces: Faces, edge_m: float, iterations: int,
-                   timeout_s: float, split: bool = True, child: KernelChild | None = None
-                   ) -> Callable[[], KernelOutcome]:
-    """Starts the kernel, after the boundary split (`boundary_split_kernel`) where `split`,
-    in `child` (a started `KernelChild`; None: one started now) and returns a call that
-    waits for it: (result, None), or (None, why it failed). The caller may work meanwhile."""
+                   timeout_s: float, split: bool = True, child: KernelChild | None = None,
+                   measure_lost: bool = False) -> Callable[[], KernelOutcome]:
+    """Starts `measured_kernel` (the boundary split first where `split`) in `child` (a started
+    `KernelChild`; None: one started now) and returns a call that waits for it: (result,
+    None), or (None, why it failed). The caller may work meanwhile."""
     return (child or KernelChild()).submit(vertices_m, faces, edge_m, iterations, timeout_s,
-                                           split)
+                                           split, measure_lost)
 
 
 def run_isolated(vertices_m: FloatArray, faces: Faces, edge_m: float, iterations: int,
@@ -175,26 +216,33 @@ def _read_outcome(returncode: int, result: Path, stderr: Path) -> KernelOutcome:
         return None, f"remesh kernel failed: {lines[-1] if lines else returncode}"
     try:
         with np.load(result, allow_pickle=False) as data:
-            return (np.asarray(data["vertices_m"], np.float64),
-                    np.asarray(data["faces"], np.int32)), None
+            lost_m = float(data["lost_m"])
+            return KernelResult(np.asarray(data["vertices_m"], np.float64),
+                                np.asarray(data["faces"], np.int32),
+                                np.asarray(data["angles_deg"], np.float64),
+                                None if np.isnan(lost_m) else lost_m), None
     except (ValueError, OSError, KeyError) as exc:
         return None, f"remesh kernel returned no mesh ({exc})"
 
 
 def _child_main() -> None:
-    """Child process body: the kernel imported first, then one request from stdin (nothing
-    on stdin: exit with nothing done); any failure exits non-zero."""
-    import gpytoolbox_bindings  # noqa: F401  (imported while the caller still works)
+    """Child process body: the kernel and the result's measures imported first, then one
+    request from stdin (nothing on stdin: exit with nothing done); any failure exits
+    non-zero."""
+    # Imported while the caller still works: scipy.spatial alone takes 0.2-0.5 s.
+    import gpytoolbox_bindings  # noqa: F401
+    import scipy.spatial  # noqa: F401
 
     line = sys.stdin.readline().strip()
     if not line:
         return
     request_path, result_path = line.split("\t")
     with np.load(request_path, allow_pickle=False) as data:
-        run = boundary_split_kernel if bool(data["split"]) else kernel
-        vertices, faces = run(data["vertices_m"], data["faces"], float(data["edge_m"]),
-                              int(data["iterations"]))
-    np.savez(result_path, vertices_m=vertices, faces=faces)
+        out = measured_kernel(data["vertices_m"], data["faces"], float(data["edge_m"]),
+                              int(data["iterations"]), bool(data["split"]),
+                              bool(data["measure_lost"]))
+    np.savez(result_path, vertices_m=out.vertices_m, faces=out.faces,
+             angles_deg=out.angles_deg, lost_m=np.nan if out.lost_m is None else out.lost_m)
 
 
 if __name__ == "__main__":

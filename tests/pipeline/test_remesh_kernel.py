@@ -6,9 +6,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.remesh import RemeshConfig, remesh
-from pipeline.remesh_kernel import KernelChild, kernel_children
+from pipeline.mesh import mean_edge_length_m
+from pipeline.mesh_repair import triangle_angles_deg
+from pipeline.remesh import RemeshConfig, remesh, start_kernel
+from pipeline.remesh_kernel import KernelChild, furthest_from_m, kernel_children, run_isolated
 from tests.pipeline.test_remesh import _bumpy_sphere
+from tests.pipeline.test_remesh_pieces import _noisy_sphere
 
 CONFIG = RemeshConfig(target_edge_length_m=0.03, iterations=2, kernel_processes=2)
 
@@ -43,3 +46,36 @@ def test_a_child_killed_before_its_work_keeps_the_input_and_warns() -> None:
     child.close()
     assert "crashed" in stats["warning"] and "kept the unremeshed mesh" in stats["warning"]
     assert out.face_count > 0.9 * source.face_count
+
+
+def test_a_child_runs_this_kernel_whatever_the_working_folder(tmp_path, monkeypatch) -> None:
+    """`python -m` puts the working folder first on the path: a folder holding another
+    `pipeline` package (a worktree, a checkout of another version) must not be run."""
+    decoy = tmp_path / "pipeline"
+    decoy.mkdir()
+    (decoy / "__init__.py").write_text("")
+    (decoy / "remesh_kernel.py").write_text("raise SystemExit(3)\n")
+    monkeypatch.chdir(tmp_path)
+    source = _bumpy_sphere()
+    result, why = run_isolated(source.vertices_m, source.faces, 0.03, 1, 60.0)
+    assert why is None and result is not None and len(result.faces) > 0
+
+
+@pytest.mark.parametrize("pieces", [1, 3])
+def test_the_figures_measured_in_the_children_are_the_joined_meshes(pieces: int) -> None:
+    """The angles come with the faces they belong to; the furthest input vertex is measured
+    against each piece's own result, so it is at least the whole's and at most an edge
+    more."""
+    mesh = _noisy_sphere(2, open_cap=True)
+    edge_m = mean_edge_length_m(mesh)
+    config = RemeshConfig(target_edge_length_m=edge_m, iterations=1, kernel_processes=pieces)
+    result, why = start_kernel(mesh.vertices_m, mesh.faces, config, measure_lost=True)()
+    assert why is None and result is not None
+    np.testing.assert_array_equal(result.angles_deg,
+                                  triangle_angles_deg(result.vertices_m, result.faces))
+    whole_m = furthest_from_m(mesh.vertices_m, result.vertices_m)
+    assert result.lost_m is not None and whole_m <= result.lost_m <= whole_m + edge_m
+    if pieces == 1:
+        assert result.lost_m == whole_m
+    unmeasured, _ = start_kernel(mesh.vertices_m, mesh.faces, config)()
+    assert unmeasured is not None and unmeasured.lost_m is None
