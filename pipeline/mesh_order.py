@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from pipeline.mesh import TriangleMesh
-from pipeline.mesh_repair import row_min
+from pipeline.mesh_repair import row_min, stable_argsort
 
 MORTON_BITS = 10
 """Bits per axis of the Morton code: a 1024³ grid over the bounding cube, cells smaller than
@@ -50,9 +50,9 @@ def morton_codes(points_m: NDArray[np.float64], bits: int = MORTON_BITS) -> NDAr
 
 def spatial_order(mesh: TriangleMesh) -> MeshOrder:
     """Vertices along the Morton curve; faces by their first vertex in that order."""
-    vertex_order = np.argsort(morton_codes(mesh.vertices_m), kind="stable")
+    vertex_order = stable_argsort(morton_codes(mesh.vertices_m))
     new_index = _inverse(vertex_order)
-    face_order = np.argsort(row_min(new_index[mesh.faces]), kind="stable")
+    face_order = stable_argsort(row_min(new_index[mesh.faces]))
     return MeshOrder(vertex_order=vertex_order, face_order=face_order)
 
 

@@ -37,10 +37,38 @@ def row_max(values: NDArray) -> NDArray:
     return np.maximum(np.maximum(values[:, 0], values[:, 1]), values[:, 2])
 
 
+def stable_sort(keys: NDArray[np.integer]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """The non-negative integer `keys` sorted, and (N,) the order that sorts them, ties in
+    index order: the order of ``np.argsort(keys, kind="stable")``. Where a key and its index
+    fit together in 63 bits they are packed into one int64 and sorted plainly, which numpy
+    does with its SIMD sort, about five times as fast as its stable argsort (an edge table's
+    633 k keys: 58 -> 12 ms); larger keys take the stable argsort."""
+    count = len(keys)
+    index_bits = max(1, (count - 1).bit_length())
+    if count == 0 or keys.min() < 0 or int(keys.max()).bit_length() + index_bits > 63:
+        order = np.argsort(keys, kind="stable")
+        return keys[order].astype(np.int64), order
+    packed = (keys.astype(np.int64) << index_bits) | np.arange(count, dtype=np.int64)
+    packed.sort()
+    return packed >> index_bits, packed & ((1 << index_bits) - 1)
+
+
+def stable_argsort(keys: NDArray[np.integer]) -> NDArray[np.int64]:
+    """(N,) `stable_sort`'s order alone."""
+    return stable_sort(keys)[1]
+
+
 def face_areas(vertices_m: FloatArray, faces: Faces) -> FloatArray:
-    """(F,) triangle areas, square metres."""
-    tri = vertices_m[faces]
-    return 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    """(F,) triangle areas, square metres: the cross product written out on the coordinates'
+    columns, four times as fast as ``np.cross`` on gathered (F, 3, 3) corners, with the same
+    bits."""
+    x, y, z = np.ascontiguousarray(np.asarray(vertices_m, np.float64).T)
+    f0, f1, f2 = faces[:, 0], faces[:, 1], faces[:, 2]
+    x0, y0, z0 = x[f0], y[f0], z[f0]
+    ax, ay, az = x[f1] - x0, y[f1] - y0, z[f1] - z0
+    bx, by, bz = x[f2] - x0, y[f2] - y0, z[f2] - z0
+    cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+    return 0.5 * np.sqrt(cx * cx + cy * cy + cz * cz)
 
 
 def edge_table(faces: Faces) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
@@ -48,17 +76,15 @@ def edge_table(faces: Faces) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
     a = np.concatenate([faces[:, 1], faces[:, 2], faces[:, 0]]).astype(np.int64)
     b = np.concatenate([faces[:, 2], faces[:, 0], faces[:, 1]]).astype(np.int64)
     low, high = np.minimum(a, b), np.maximum(a, b)
-    keys = low * (int(high.max(initial=0)) + 1) + high
-    # np.unique by hand, with a stable sort: on faces in a spatial order (`mesh_order`) the
-    # keys come in long sorted runs, which it merges rather than sorts (twice as fast).
-    order = np.argsort(keys, kind="stable")
-    sorted_keys = keys[order]
-    first = np.ones(len(keys), dtype=bool)
+    span = int(high.max(initial=0)) + 1
+    # np.unique by hand, with a stable sort, so that equal edges keep the order of the faces.
+    sorted_keys, order = stable_sort(low * span + high)
+    first = np.ones(len(order), dtype=bool)
     first[1:] = sorted_keys[1:] != sorted_keys[:-1]
-    inverse = np.empty(len(keys), dtype=np.int64)
+    inverse = np.empty(len(order), dtype=np.int64)
     inverse[order] = np.cumsum(first) - 1
-    kept = order[first]
-    return np.column_stack([low[kept], high[kept]]), inverse.reshape(3, -1).T
+    kept_low, kept_high = np.divmod(sorted_keys[first], span)
+    return np.column_stack([kept_low, kept_high]), inverse.reshape(3, -1).T
 
 
 def faces_at(faces: Faces, at_vertex: NDArray[np.bool_]) -> NDArray[np.bool_]:
@@ -126,14 +152,16 @@ def non_manifold_vertices(faces: Faces, vertex_count: int,
 
 
 def _first_of_each_corner_set(faces: NDArray[np.integer]) -> NDArray[np.int64]:
-    """(U,) ascending, the first face of each set of faces with the same three corners: a
-    stable sort of the sorted corners, which np.unique over rows does more slowly (0.21 ->
-    0.15 s on beetle's 510 k faces)."""
-    corners = np.sort(faces, axis=1)
-    order = np.lexsort((corners[:, 2], corners[:, 1], corners[:, 0]))
-    ordered = corners[order]
+    """(U,) ascending, the first face of each set of faces with the same three corners: the
+    faces' sorted corners ordered as ``np.lexsort`` would, by two stable sorts (the largest
+    corner, then the two smaller ones as one key), each of `stable_argsort`'s packed keys."""
+    low, high = row_min(faces).astype(np.int64), row_max(faces).astype(np.int64)
+    middle = faces.sum(axis=1, dtype=np.int64) - low - high
+    order = stable_argsort(high)
+    order = order[stable_argsort((low * (int(high.max(initial=0)) + 1) + middle)[order])]
+    corners = np.column_stack([low, middle, high])[order]
     first = np.ones(len(faces), dtype=bool)
-    first[1:] = np.any(ordered[1:] != ordered[:-1], axis=1)
+    first[1:] = np.any(corners[1:] != corners[:-1], axis=1)
     return np.sort(order[first])
 
 

@@ -50,11 +50,22 @@ def spatial_pieces(faces: Faces, count: int) -> list[Piece]:
     """`faces` cut into `count` runs of about equal length, in their order: contiguous
     pieces where the faces are in a spatial order."""
     pieces = []
+    vertex_count = int(faces.max(initial=-1)) + 1
     for run in np.array_split(faces, count):
-        vertex_ids, local = np.unique(run, return_inverse=True)
-        local_faces = local.reshape(-1, 3).astype(np.int32)
-        pieces.append(Piece(vertex_ids.astype(np.int64), local_faces, held_vertices(local_faces)))
+        vertex_ids, local_faces = _renumbered(run, vertex_count)
+        pieces.append(Piece(vertex_ids, local_faces, held_vertices(local_faces)))
     return pieces
+
+
+def _renumbered(faces: NDArray[np.integer], vertex_count: int
+                ) -> tuple[NDArray[np.int64], Faces]:
+    """(U,) ascending, the vertices `faces` use, and the faces on them: ``np.unique(faces,
+    return_inverse=True)`` by marking the used vertices, with no sort (a third of the time
+    on the bunny's pieces)."""
+    used = np.zeros(vertex_count, dtype=bool)
+    used[faces.ravel()] = True
+    new_index = np.cumsum(used) - 1
+    return np.flatnonzero(used), new_index[faces].astype(np.int32)
 
 
 def stitched(vertices_m: FloatArray, pieces: list[Piece],
@@ -76,6 +87,5 @@ def stitched(vertices_m: FloatArray, pieces: list[Piece],
         out_vertices.append(piece_vertices_m[len(held_ids):])
         out_faces.append(to_output[piece_faces])
         next_id += new_count
-    faces = np.concatenate(out_faces)
-    used, renumbered = np.unique(faces, return_inverse=True)
-    return np.concatenate(out_vertices)[used], renumbered.reshape(-1, 3).astype(np.int32)
+    used, faces = _renumbered(np.concatenate(out_faces), next_id)
+    return np.concatenate(out_vertices)[used], faces

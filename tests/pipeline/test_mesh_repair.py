@@ -10,9 +10,11 @@ from pipeline.mesh_repair import (
     _first_of_each_corner_set,
     drop_small_components,
     edge_table,
+    face_areas,
     faces_per_edge,
     non_manifold_vertices,
     repair,
+    stable_sort,
     triangle_angles_deg,
 )
 
@@ -113,3 +115,24 @@ def test_duplicates_are_found_whatever_the_corners_order(seed: int, faces: int,
     f = np.random.default_rng(seed).integers(0, vertices, (faces, 3))
     _, expected = np.unique(np.sort(f, axis=1), axis=0, return_index=True)
     assert np.array_equal(_first_of_each_corner_set(f), np.sort(expected))
+
+
+@settings(max_examples=60, deadline=None)
+@given(keys=st.lists(st.integers(0, 2**62), max_size=300), span=st.sampled_from([3, 1000, 0]))
+def test_stable_sort_is_numpys_stable_argsort(keys: list[int], span: int) -> None:
+    """Small keys (many ties) take the packed sort, keys too wide to pack beside their index
+    the stable argsort: both give the stable order and the sorted keys."""
+    values = np.array(keys, dtype=np.int64) % span if span else np.array(keys, dtype=np.int64)
+    sorted_keys, order = stable_sort(values)
+    expected = np.argsort(values, kind="stable")
+    assert np.array_equal(order, expected)
+    assert np.array_equal(sorted_keys, values[expected])
+
+
+def test_face_areas_are_half_the_cross_products_norm() -> None:
+    rng = np.random.default_rng(3)
+    v = rng.normal(size=(40, 3))
+    f = rng.integers(0, 40, (100, 3)).astype(np.int32)
+    tri = v[f]
+    expected = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    assert np.array_equal(face_areas(v, f), expected)
