@@ -138,13 +138,14 @@ def start_kernel(vertices_m: FloatArray, faces: Faces, config: RemeshConfig,
         results = [r for r, _ in outcomes if r is not None]
         try:
             joined_m, joined = stitched(vertices_m, pieces,
-                                        [(r.vertices_m, r.faces) for r in results])
+                                        [(r.vertices_m, r.faces, r.held) for r in results])
         except ValueError as exc:
             return None, str(exc)
         # The stitch keeps the pieces' faces in their order, so their angles follow them.
         lost_m = max(r.lost_m or 0.0 for r in results) if measure_lost else None
-        return KernelResult(joined_m, joined, np.concatenate([r.angles_deg for r in results]),
-                            lost_m), None
+        held = np.zeros(0, dtype=np.int64)  # the joined mesh's boundary is not asked for
+        return KernelResult(joined_m, joined, held,
+                            np.concatenate([r.angles_deg for r in results]), lost_m), None
 
     return wait
 

@@ -41,6 +41,9 @@ class KernelResult:
     """(V, 3) the result's vertices, the held ones first."""
     faces: Faces
     """(F, 3) the result's faces."""
+    held: NDArray[np.int64]
+    """(H,) ascending, the input's vertices the kernel held (its boundary's): the result's
+    first H vertices, in this order. Empty for the pieces `remesh.start_kernel` joins."""
     angles_deg: FloatArray
     """(F, 3) `triangle_angles_deg` of the result."""
     lost_m: float | None
@@ -53,12 +56,12 @@ KernelOutcome = tuple[KernelResult | None, str | None]
 
 
 def kernel(vertices_m: FloatArray, faces: Faces, edge_m: float, iterations: int
-           ) -> tuple[FloatArray, Faces]:
+           ) -> tuple[FloatArray, Faces, NDArray[np.int64]]:
     """gpytoolbox's ``remesh_botsch`` (boundary vertices held, projection on), called past its
     Python wrapper, whose input checks (row-wise sorts of every half-edge) took 1.8 s of its
     2.9 s on a 100 k-vertex mesh; the same checks here take a tenth of that. The wrapper's
-    contract is kept: the held vertices (the boundary's, ascending) come first. A test holds
-    the two equal."""
+    contract is kept: the held vertices (the boundary's, ascending; returned third) come
+    first. A test holds the two equal."""
     from gpytoolbox_bindings import _remesh_botsch_cpp_impl
 
     v = np.asarray(vertices_m, np.float64)
@@ -77,11 +80,12 @@ def kernel(vertices_m: FloatArray, faces: Faces, edge_m: float, iterations: int
         v, f, iterations, edge_m, np.arange(len(held), dtype=np.int32),
         np.zeros((0, 2), dtype=np.int32), True,
     )
-    return np.asarray(out_v, dtype=np.float64), np.asarray(out_f, dtype=np.int32)
+    return (np.asarray(out_v, dtype=np.float64), np.asarray(out_f, dtype=np.int32),
+            held.astype(np.int64))
 
 
 def boundary_split_kernel(vertices_m: FloatArray, faces: Faces, edge_m: float,
-                          iterations: int) -> tuple[FloatArray, Faces]:
+                          iterations: int) -> tuple[FloatArray, Faces, NDArray[np.int64]]:
     """`kernel` on the mesh with its long boundary edges split first, which the kernel
     cannot do as it holds the boundary, in a spatial order (`in_spatial_order`). Both run
     in the kernel's child, beside the caller's clean-up of the input (on beetle's update
@@ -104,9 +108,9 @@ def measured_kernel(vertices_m: FloatArray, faces: Faces, edge_m: float, iterati
     """`boundary_split_kernel` (where `split`) or `kernel`, with the result's angles and, where
     `measure_lost`, how far the input's vertices are from it (`furthest_from_m`)."""
     run = boundary_split_kernel if split else kernel
-    out_v, out_f = run(vertices_m, faces, edge_m, iterations)
+    out_v, out_f, held = run(vertices_m, faces, edge_m, iterations)
     lost_m = furthest_from_m(vertices_m, out_v) if measure_lost else None
-    return KernelResult(out_v, out_f, triangle_angles_deg(out_v, out_f), lost_m)
+    return KernelResult(out_v, out_f, held, triangle_angles_deg(out_v, out_f), lost_m)
 
 
 class KernelChild:
@@ -219,6 +223,7 @@ def _read_outcome(returncode: int, result: Path, stderr: Path) -> KernelOutcome:
             lost_m = float(data["lost_m"])
             return KernelResult(np.asarray(data["vertices_m"], np.float64),
                                 np.asarray(data["faces"], np.int32),
+                                np.asarray(data["held"], np.int64),
                                 np.asarray(data["angles_deg"], np.float64),
                                 None if np.isnan(lost_m) else lost_m), None
     except (ValueError, OSError, KeyError) as exc:
@@ -241,7 +246,7 @@ def _child_main() -> None:
         out = measured_kernel(data["vertices_m"], data["faces"], float(data["edge_m"]),
                               int(data["iterations"]), bool(data["split"]),
                               bool(data["measure_lost"]))
-    np.savez(result_path, vertices_m=out.vertices_m, faces=out.faces,
+    np.savez(result_path, vertices_m=out.vertices_m, faces=out.faces, held=out.held,
              angles_deg=out.angles_deg, lost_m=np.nan if out.lost_m is None else out.lost_m)
 
 

@@ -16,6 +16,7 @@ seam of short edges, so only the light remesh asks for pieces.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -35,13 +36,11 @@ class Piece:
     """(Vp,) the input's index of each of the piece's vertices, ascending."""
     faces: Faces
     """(Fp, 3) the faces, indexing `vertex_ids`."""
-    held: NDArray[np.int64]
-    """(H,) ascending, the piece's vertices the kernel holds (`held_vertices`)."""
 
 
 def held_vertices(faces: Faces) -> NDArray[np.int64]:
     """(H,) ascending, the vertices on the boundary of `faces` (on an edge one face uses):
-    those the kernel holds, and returns first in this order."""
+    those the kernel holds, and returns first in this order (its `held`)."""
     edges, opposite = edge_table(faces)
     return np.unique(edges[faces_per_edge(opposite, len(edges)) == 1])
 
@@ -53,7 +52,7 @@ def spatial_pieces(faces: Faces, count: int) -> list[Piece]:
     vertex_count = int(faces.max(initial=-1)) + 1
     for run in np.array_split(faces, count):
         vertex_ids, local_faces = _renumbered(run, vertex_count)
-        pieces.append(Piece(vertex_ids, local_faces, held_vertices(local_faces)))
+        pieces.append(Piece(vertex_ids, local_faces))
     return pieces
 
 
@@ -69,17 +68,19 @@ def _renumbered(faces: NDArray[np.integer], vertex_count: int
 
 
 def stitched(vertices_m: FloatArray, pieces: list[Piece],
-             results: list[tuple[FloatArray, Faces]]) -> tuple[FloatArray, Faces]:
-    """The pieces' kernel results (vertices, faces; the held vertices first) joined into one
-    mesh: each held vertex becomes the input vertex it came from, the rest are appended;
-    input vertices no face uses any more are dropped. A ValueError where a piece moved a
-    vertex it should have held."""
+             results: Sequence[tuple[FloatArray, Faces, NDArray[np.int64]]]
+             ) -> tuple[FloatArray, Faces]:
+    """The pieces' kernel results (vertices, faces, and the piece's vertices it held, which
+    come first: the kernel's `held`, the piece's `held_vertices`) joined into one mesh: each
+    held vertex becomes the input vertex it came from, the rest are appended; input vertices
+    no face uses any more are dropped. A ValueError where a piece moved a vertex it should
+    have held."""
     out_vertices = [vertices_m]
     out_faces = []
     next_id = len(vertices_m)
-    for k, (piece, (piece_vertices_m, piece_faces)) in enumerate(zip(pieces, results,
-                                                                     strict=True)):
-        held_ids = piece.vertex_ids[piece.held]
+    for k, (piece, (piece_vertices_m, piece_faces, held)) in enumerate(zip(pieces, results,
+                                                                           strict=True)):
+        held_ids = piece.vertex_ids[held]
         if not np.array_equal(piece_vertices_m[: len(held_ids)], vertices_m[held_ids]):
             raise ValueError(f"remesh piece {k}: the kernel moved a vertex of its cut")
         new_count = len(piece_vertices_m) - len(held_ids)

@@ -136,6 +136,7 @@ def test_the_kernel_equals_gpytoolbox_remesh_botsch(open_mesh: bool) -> None:
     if open_mesh:
         held = np.unique(edge_table(f)[0][np.bincount(edge_table(f)[1].ravel()) == 1])
         assert np.array_equal(ours[0][: len(held)], v[held])  # boundary kept, first
+        assert np.array_equal(ours[2], held)
 
 
 @pytest.mark.parametrize("isolate", [True, False])

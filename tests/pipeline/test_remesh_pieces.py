@@ -54,23 +54,26 @@ def test_pieces_remeshed_apart_join_into_one_manifold_surface(
     assert len(vertices_m) - len(uses) + len(faces) == euler_in
     assert np.array_equal(np.unique(faces), np.arange(len(vertices_m)))
     # Each cut vertex is kept where it was.
-    for piece in pieces:
-        held_m = mesh.vertices_m[piece.vertex_ids[piece.held]]
+    for piece, (_, _, held) in zip(pieces, results, strict=True):
+        assert np.array_equal(held, held_vertices(piece.faces))
+        held_m = mesh.vertices_m[piece.vertex_ids[held]]
         assert np.isin(held_m.view("f8,f8,f8"), vertices_m.view("f8,f8,f8")).all()
     # Still the sphere, and about as finely meshed as in one piece.
     radius_m = np.linalg.norm(vertices_m, axis=1)
     assert np.abs(radius_m - 0.5).max() < 0.02
-    whole_v, whole_f = kernel(mesh.vertices_m, mesh.faces, edge_m, 1)
+    whole_v, whole_f, _ = kernel(mesh.vertices_m, mesh.faces, edge_m, 1)
     assert len(faces) == pytest.approx(len(whole_f), rel=0.03)
 
 
 def test_a_piece_that_moved_a_cut_vertex_is_refused() -> None:
     mesh = _noisy_sphere(0, False, subdivisions=3)
     pieces = spatial_pieces(mesh.faces, 2)
-    results = [(mesh.vertices_m[p.vertex_ids], p.faces) for p in pieces]
-    # The pieces as they came, held vertices not first: joining them must fail loudly.
-    moved = [(v[np.r_[p.held, np.setdiff1d(np.arange(len(v)), p.held)]] + 1e-3, f)
-             for p, (v, f) in zip(pieces, results, strict=True)]
+    # The pieces as they came, held vertices first but moved: joining them must fail loudly.
+    moved = []
+    for p in pieces:
+        v, held = mesh.vertices_m[p.vertex_ids], held_vertices(p.faces)
+        moved.append((v[np.r_[held, np.setdiff1d(np.arange(len(v)), held)]] + 1e-3, p.faces,
+                      held))
     with pytest.raises(ValueError, match="piece 0"):
         stitched(mesh.vertices_m, pieces, moved)
 
