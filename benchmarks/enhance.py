@@ -12,7 +12,7 @@ renders (meshes never trained on). Targets are checked and reported as they come
 The timing alone, per stage, in this process (on a GPU: `--device cuda`):
 
     .venv/bin/python benchmarks/enhance.py --perf-child [--device cuda] [--remesh-iterations 0]
-        [--profile FILE]
+        [--remesh auto|ahead|after] [--profile FILE]
 """
 
 from __future__ import annotations
@@ -36,11 +36,12 @@ sys.path.insert(0, str(ROOT))
 
 from pipeline.enhance import EnhanceConfig, enhance_mesh  # noqa: E402
 from pipeline.enhance.bounded_noise import BoundedNoiseConfig  # noqa: E402
-from pipeline.enhance.config import STAGE_PROGRESS, light_remesh  # noqa: E402
+from pipeline.enhance.config import STAGE_PROGRESS, light_remesh_config  # noqa: E402
 from pipeline.enhance.data import DataConfig, noisy_along_normals  # noqa: E402
 from pipeline.enhance.metrics import c2m_summary, normal_error_deg  # noqa: E402
 from pipeline.enhance.normal_filter import NormalFilterConfig, normal_filter  # noqa: E402
 from pipeline.mesh import TriangleMesh  # noqa: E402
+from pipeline.remesh_ahead import finish_remesh_ahead, start_remesh_ahead  # noqa: E402
 
 SWEEPS = {
     "laplacian": range(1, 31),
@@ -128,10 +129,13 @@ def selector_same_ending(noisy, truth, base: EnhanceConfig) -> dict:
     """The selector's pre-smoothing ended as the networks' update is (the normal filter, then
     the light remesh) with no network between: what the networks add to the rest."""
     t = time.perf_counter()
-    result = normal_filter(enhance_mesh(noisy, replace(base, method="selector")),
-                           base.normal_filter)
-    if base.remesh_iterations > 0:
-        result = light_remesh(result, base.remesh_iterations)
+    selected = enhance_mesh(noisy, replace(base, method="selector"))
+    # As in the networks' path, the light remesh starts on the mesh the normal filter moves.
+    ahead = (start_remesh_ahead(selected, light_remesh_config(selected, base.remesh_iterations))
+             if base.remesh_iterations > 0 else None)
+    result = normal_filter(selected, base.normal_filter)
+    if ahead is not None:
+        result = finish_remesh_ahead(ahead, result)[0]
     return score(result, truth, time.perf_counter() - t)
 
 
@@ -278,6 +282,7 @@ def perf_child(args) -> None:
     cfg = EnhanceConfig(
         method="ldm", views=args.views, resolution=args.resolution, steps=args.steps,
         remesh_iterations=args.remesh_iterations, device=args.device, weights=weights,
+        remesh_ahead={"auto": None, "ahead": True, "after": False}[args.remesh],
     )
     enhance_mesh(noisy, replace(cfg, resolution=32))  # warm-up: imports, first-call costs
     base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
@@ -337,6 +342,9 @@ def main() -> None:
                     help="with --perf-child: write cProfile's figures of the timed call here")
     ap.add_argument("--remesh-iterations", type=int, default=1,
                     help="light remesh rounds of the timing (0: none)")
+    ap.add_argument("--remesh", choices=["auto", "ahead", "after"], default="auto",
+                    help="with --perf-child: the light remesh started ahead of the update "
+                    "(`remesh_ahead`), after it, or as the device's default")
     ap.add_argument("--edge-mm", type=float, default=5.0,
                     help="the protocol's edge length, mm (finer: a larger mesh, for timings)")
     ap.add_argument("--steps", type=int, default=4, help=argparse.SUPPRESS)

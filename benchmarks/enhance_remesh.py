@@ -11,7 +11,9 @@ RMS (result vertices to the truth, which depends on where the vertices lie), the
 the update's faces outside the remesh stage's angle criteria, and of each result's. Last, what
 the enhance stage keeps (`light_remesh`: the full remesh, or the clean-up alone where the
 kernel adds faces outside the criteria, or leaves an input vertex more than two edges from
-every vertex of its result: `kernel_lost_edges`).
+every vertex of its result: `kernel_lost_edges`), and what the enhancement itself gives
+(`enhance_mesh`: the same light remesh started ahead, on the mesh the update moves, and
+carried onto the moved mesh; `remesh_ahead`).
 """
 
 from __future__ import annotations
@@ -58,6 +60,7 @@ def mesh_report(meshes: Path, name: str) -> dict:
             out[label]["kernel_lost_edges"] = surface_lost_edges(
                 updated.vertices_m, result.vertices_m, full.target_edge_length_m)
     out["light_remesh"] = scores(light_remesh(updated, 1), truth, full)
+    out["enhance_mesh"] = scores(enhance_mesh(noisy, EnhanceConfig(method="ldm")), truth, full)
     return out
 
 

@@ -5,10 +5,14 @@ the boundary split's rounds near the long edges against rounds over every face; 
 
 Each variant also runs `_started_ahead`, as `enhance_mesh` runs it: the kernel's children
 started a second before (`remesh_kernel.kernel_children`), while the stages before the remesh
-run. The input is what `enhance_mesh` hands the light remesh: the LDM's update of a protocol mesh
-(`bunny_protocol`, the LDM at 4 steps with no remesh), in a spatial order. Each variant runs
-`repeats` times, alternating, in this process after one warm-up call; the C2M figures of
-both remeshes against the protocol's truth say whether the pieces cost anything.
+run. The input is what `enhance_mesh` hands the light remesh: the LDM's update of a protocol
+mesh (`bunny_protocol`, the LDM at 4 steps with no remesh), in a spatial order. Each variant
+runs `repeats` times, alternating, in this process after one warm-up call; the C2M figures
+of both remeshes against the protocol's truth say whether the pieces cost anything. Last,
+the remesh started ahead of the update (`remesh_ahead`, the default on a GPU): its start,
+and its finish `--overlap` seconds later (`ahead_seconds`).
+
+    .venv/bin/python benchmarks/remesh_speed.py [--overlap S]
 """
 
 from __future__ import annotations
@@ -34,6 +38,7 @@ from pipeline.mesh import TriangleMesh, mean_edge_length_m  # noqa: E402
 from pipeline.mesh_order import reordered, spatial_order  # noqa: E402
 from pipeline.mesh_repair import repair  # noqa: E402
 from pipeline.remesh import RemeshConfig, kernel_piece_count, remesh  # noqa: E402
+from pipeline.remesh_ahead import finish_remesh_ahead, start_remesh_ahead  # noqa: E402
 from pipeline.remesh_kernel import kernel_children  # noqa: E402
 
 
@@ -58,6 +63,26 @@ def timed_remesh(mesh: TriangleMesh, config: RemeshConfig, ahead: bool) -> tuple
         return round(time.perf_counter() - start, 3), round(wait, 3)
 
 
+def timed_ahead(mesh: TriangleMesh, config: RemeshConfig, overlap_s: float
+                ) -> tuple[float, float, float]:
+    """Seconds of `remesh_ahead`'s start and finish, and the finish's wait for the kernel, as
+    `enhance_mesh` runs them on a GPU: children started a second before, the start on the
+    mesh the update will move, the finish `overlap_s` later (the networks and the update)
+    on the moved mesh. Here the mesh does not move: the times do not depend on it."""
+    count = kernel_piece_count(mesh.face_count, config.kernel_processes)
+    with kernel_children(count) as children:
+        time.sleep(1.0)
+        start = time.perf_counter()
+        ahead = start_remesh_ahead(mesh, config, children)
+        started = time.perf_counter()
+        assert ahead is not None
+        time.sleep(overlap_s)
+        finishing = time.perf_counter()
+        _, stats = finish_remesh_ahead(ahead, mesh)
+        return (round(started - start, 3), round(time.perf_counter() - finishing, 3),
+                round(stats["kernel_wait_s"], 3))
+
+
 def timed(call, repeats: int) -> list[float]:
     out = []
     for _ in range(repeats):
@@ -72,6 +97,9 @@ def main() -> None:
     ap.add_argument("--meshes", default=str(ROOT.parent / "shared" / "data" / "meshes"))
     ap.add_argument("--mesh", default="stanford-bunny")
     ap.add_argument("--repeats", type=int, default=4)
+    ap.add_argument("--overlap", type=float, default=0.6,
+                    help="seconds between the ahead remesh's start and finish (the networks "
+                    "and the update on a GPU)")
     ap.add_argument("--pieces", type=int, nargs="*", default=[],
                     help="also time these piece counts (the default's is one per core)")
     args = ap.parse_args()
@@ -91,6 +119,7 @@ def main() -> None:
                 took, wait = timed_remesh(update, config, ahead)
                 seconds.setdefault(key, []).append(took)
                 waits.setdefault(key, []).append(wait)
+    ahead = [timed_ahead(update, configs["pieces"], args.overlap) for _ in range(args.repeats)]
     v, f, _ = repair(update.vertices_m, update.faces, 0.0)
     edge_m = mean_edge_length_m(update)
     region, whole = split_boundary_edges(v, f, edge_m), split_everywhere(v, f, edge_m)
@@ -99,6 +128,9 @@ def main() -> None:
         "pieces": kernel_piece_count(update.face_count, None),
         "light_remesh_seconds": seconds,
         "waiting_for_the_kernel_seconds": waits,
+        "ahead_seconds": {"start": [a[0] for a in ahead], "finish": [a[1] for a in ahead],
+                          "finish_waiting": [a[2] for a in ahead],
+                          "finish_after_s": args.overlap},
         "c2m": {name: {k: round(x, 5) for k, x in score(mesh, truth, 0.0).items()
                        if k != "seconds"} for name, mesh in results.items()},
         "faces_out": {name: mesh.face_count for name, mesh in results.items()},

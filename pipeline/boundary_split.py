@@ -33,6 +33,15 @@ def split_boundary_edges(vertices_m: FloatArray, faces: Faces, target_edge_m: fl
     rounds, until there are none; faces with a repeated corner are left alone. The old
     vertices keep their index and the midpoints follow; the faces no round cuts keep their
     order and the pieces of those it cuts follow."""
+    v, f, _ = split_boundary_edges_with_parents(vertices_m, faces, target_edge_m)
+    return v, f
+
+
+def split_boundary_edges_with_parents(vertices_m: FloatArray, faces: Faces,
+                                      target_edge_m: float
+                                      ) -> tuple[FloatArray, Faces, NDArray[np.int64]]:
+    """`split_boundary_edges`, and (N, 2) the ends of the edge each of the N midpoints
+    bisected (output indices; a midpoint's ends come before it)."""
     v, f = np.asarray(vertices_m, np.float64), np.asarray(faces, np.int32)
     edges, opposite = edge_table(f)
     boundary_edges = edges[faces_per_edge(opposite, len(edges)) == 1]
@@ -41,23 +50,30 @@ def split_boundary_edges(vertices_m: FloatArray, faces: Faces, target_edge_m: fl
     length_m = np.linalg.norm(v[edges[:, 0]] - v[edges[:, 1]], axis=1)
     wanted = (length_m > target_edge_m * 4 / 3) & on_boundary[edges].any(axis=1)
     if not wanted.any():
-        return v, f
+        return v, f, np.zeros((0, 2), dtype=np.int64)
     region = np.flatnonzero(_faces_near(f, edges[wanted], len(v), REGION_RINGS))
     split = _split_in_region(v, f, region, boundary_edges, on_boundary, target_edge_m)
-    return split if split is not None else split_everywhere(v, f, target_edge_m)
+    return split if split is not None else _split_all(v, f, target_edge_m)
 
 
 def split_everywhere(vertices_m: FloatArray, faces: Faces, target_edge_m: float
                      ) -> tuple[FloatArray, Faces]:
     """`split_boundary_edges` with its rounds over every face: where a chain reaches the
     region's rim, and the reference its region is held equal to."""
+    v, f, _ = _split_all(vertices_m, faces, target_edge_m)
+    return v, f
+
+
+def _split_all(vertices_m: FloatArray, faces: Faces, target_edge_m: float
+               ) -> tuple[FloatArray, Faces, NDArray[np.int64]]:
+    """`split_everywhere`, with the midpoints' parents."""
     v, f = np.asarray(vertices_m, np.float64), np.asarray(faces, np.int32)
     edges, opposite = edge_table(f)
     on_boundary = np.zeros(len(v), dtype=bool)
     on_boundary[edges[faces_per_edge(opposite, len(edges)) == 1].ravel()] = True
     whole = split_rounds(v, f, on_boundary, np.zeros((0, 2), np.int64), target_edge_m)
     assert whole is not None  # with no rim, no round can reach one
-    return whole[0], whole[1]
+    return whole[0], whole[1], whole[3]
 
 
 def _faces_near(faces: Faces, seed_edges: NDArray[np.int64], vertex_count: int, rings: int
@@ -72,7 +88,8 @@ def _faces_near(faces: Faces, seed_edges: NDArray[np.int64], vertex_count: int, 
 
 def _split_in_region(v: FloatArray, f: Faces, region: NDArray[np.int64],
                      boundary_edges: NDArray[np.int64], on_boundary: NDArray[np.bool_],
-                     target_edge_m: float) -> tuple[FloatArray, Faces] | None:
+                     target_edge_m: float
+                     ) -> tuple[FloatArray, Faces, NDArray[np.int64]] | None:
     """`split_rounds` on the faces `region` alone, joined back into the whole mesh as the
     rounds on the whole would have left it; None where a chain reaches the region's rim.
 
@@ -87,13 +104,14 @@ def _split_in_region(v: FloatArray, f: Faces, region: NDArray[np.int64],
     split = split_rounds(v[used], local_faces, on_boundary[used], rim, target_edge_m)
     if split is None:
         return None
-    local_v, local_f, origin = split
+    local_v, local_f, origin, local_parents = split
     to_whole = np.concatenate([used, len(v) + np.arange(len(local_v) - len(used))])
     uncut = np.ones(len(f), dtype=bool)
     uncut[region] = False
     uncut[region[origin[origin >= 0]]] = True
     pieces = to_whole[local_f[origin < 0]].astype(np.int32)
-    return np.vstack([v, local_v[len(used):]]), np.vstack([f[uncut], pieces])
+    return (np.vstack([v, local_v[len(used):]]), np.vstack([f[uncut], pieces]),
+            to_whole[local_parents])
 
 
 def _rows_in(rows: NDArray[np.integer], table: NDArray[np.integer]) -> NDArray[np.bool_]:
@@ -107,20 +125,22 @@ def _rows_in(rows: NDArray[np.integer], table: NDArray[np.integer]) -> NDArray[n
 
 def split_rounds(v: FloatArray, f: Faces, on_boundary: NDArray[np.bool_],
                  rim: NDArray[np.int64], target_edge_m: float
-                 ) -> tuple[FloatArray, Faces, NDArray[np.int64]] | None:
+                 ) -> tuple[FloatArray, Faces, NDArray[np.int64], NDArray[np.int64]] | None:
     """The rounds of `split_boundary_edges` on `f`, given (V,) which of its vertices are on
     the boundary (a midpoint is where its edge is) and (R, 2) `rim` edges (sorted rows)
     that one face uses but are not boundary; None where a round would split one of them.
-    Returns the vertices, the faces (those no round cut first, in order, then the pieces)
-    and (F',) each face's row in `f` (-1: a piece)."""
+    Returns the vertices, the faces (those no round cut first, in order, then the pieces),
+    (F',) each face's row in `f` (-1: a piece) and (N, 2) the ends of the edge each new
+    vertex bisected."""
     origin = np.arange(len(f))
+    parents = np.zeros((0, 2), dtype=np.int64)
     while True:
         edges, opposite = edge_table(f)
         uses = faces_per_edge(opposite, len(edges))
         length_m = np.linalg.norm(v[edges[:, 0]] - v[edges[:, 1]], axis=1)
         wanted = (length_m > target_edge_m * 4 / 3) & on_boundary[edges].any(axis=1)
         if not wanted.any():
-            return v, f, origin
+            return v, f, origin, parents
         ok_face = ~(f[:, [0, 1, 2]] == f[:, [1, 2, 0]]).any(axis=1)
         corner = _longest_corner(length_m, opposite)
         longest = opposite[np.arange(len(f)), corner]
@@ -129,10 +149,11 @@ def split_rounds(v: FloatArray, f: Faces, on_boundary: NDArray[np.bool_],
             return None
         split_edge = needed & (np.bincount(longest[ok_face], minlength=len(uses)) == uses)
         if not split_edge.any():  # only where a face with a repeated corner blocks the chain
-            return v, f, origin
+            return v, f, origin, parents
         new_index = np.full(len(edges), -1, dtype=np.int64)
         new_index[split_edge] = len(v) + np.arange(split_edge.sum())
         v = np.vstack([v, v[edges[split_edge]].mean(axis=1)])
+        parents = np.vstack([parents, edges[split_edge]])
         on_boundary = np.concatenate([on_boundary, (uses == 1)[split_edge]])
         cut = np.nonzero(ok_face & split_edge[longest])[0]
         c = corner[cut]

@@ -108,26 +108,37 @@ def start_kernel(vertices_m: FloatArray, faces: Faces, config: RemeshConfig,
                  children: Sequence[KernelChild] = (), measure_lost: bool = False
                  ) -> Callable[[], KernelOutcome]:
     """`start_isolated` on the whole mesh, or, where it is cut into more than one piece
-    (`kernel_piece_count`), the boundary split here, then one child per spatial piece
-    (`remesh_pieces`); the call that waits joins them. One piece failing fails the whole.
-    The started `children` are used first (the caller ends any left), then new ones.
+    (`kernel_piece_count`), the boundary split here, then `start_pieces`. The started
+    `children` are used first (the caller ends any left), then new ones."""
+    count = kernel_piece_count(len(faces), config.kernel_processes)
+    if count == 1:
+        return start_isolated(vertices_m, faces, config.target_edge_length_m,
+                              config.iterations, config.timeout_s,
+                              child=children[0] if children else None,
+                              measure_lost=measure_lost)
+    vertices_m, faces, _ = in_spatial_order(
+        *split_boundary_edges(vertices_m, faces, config.target_edge_length_m))
+    return start_pieces(vertices_m, faces, count, config, children, measure_lost)
+
+
+def start_pieces(vertices_m: FloatArray, faces: Faces, count: int, config: RemeshConfig,
+                 children: Sequence[KernelChild] = (), measure_lost: bool = False,
+                 locate: bool = False) -> Callable[[], KernelOutcome]:
+    """The kernel on a mesh already split (`split_boundary_edges`) and in a spatial order,
+    one child per spatial piece (`remesh_pieces`), and a call that waits for them and joins
+    them. One piece failing fails the whole. Where `locate`, the joined result's vertices
+    come as points of the input's faces (`source_ids` index `vertices_m`).
 
     Each piece's `lost_m` (`measure_lost`) is measured against its own result, a part of the
     whole's, so the joined figure, their greatest, can only be above the whole's: at most by
     an edge, near a cut, where the cut's held vertices are in both."""
-    count = kernel_piece_count(len(faces), config.kernel_processes)
-    ready: list[KernelChild | None] = [*children[:count], *[None] * (count - len(children))]
-    edge_m, iterations = config.target_edge_length_m, config.iterations
-    if count == 1:
-        return start_isolated(vertices_m, faces, edge_m, iterations, config.timeout_s,
-                              child=ready[0], measure_lost=measure_lost)
-    from pipeline.remesh_pieces import spatial_pieces, stitched
+    from pipeline.remesh_pieces import spatial_pieces, stitched, stitched_sources
 
-    vertices_m, faces, _ = in_spatial_order(*split_boundary_edges(vertices_m, faces, edge_m))
+    ready: list[KernelChild | None] = [*children[:count], *[None] * (count - len(children))]
     pieces = spatial_pieces(faces, count)
-    waits = [start_isolated(vertices_m[p.vertex_ids], p.faces, edge_m, iterations,
-                            config.timeout_s, split=False, child=child,
-                            measure_lost=measure_lost)
+    waits = [start_isolated(vertices_m[p.vertex_ids], p.faces, config.target_edge_length_m,
+                            config.iterations, config.timeout_s, split=False, child=child,
+                            measure_lost=measure_lost, locate=locate)
              for p, child in zip(pieces, ready, strict=True)]
 
     def wait() -> KernelOutcome:
@@ -137,25 +148,32 @@ def start_kernel(vertices_m: FloatArray, faces: Faces, config: RemeshConfig,
             return None, "; ".join(failed)
         results = [r for r, _ in outcomes if r is not None]
         try:
-            joined_m, joined = stitched(vertices_m, pieces,
-                                        [(r.vertices_m, r.faces, r.held) for r in results])
+            joined_m, joined, rows = stitched(
+                vertices_m, pieces, [(r.vertices_m, r.faces, r.held) for r in results])
         except ValueError as exc:
             return None, str(exc)
         # The stitch keeps the pieces' faces in their order, so their angles follow them.
         lost_m = max(r.lost_m or 0.0 for r in results) if measure_lost else None
         held = np.zeros(0, dtype=np.int64)  # the joined mesh's boundary is not asked for
+        ids, weights = None, None
+        if locate:
+            ids, weights = stitched_sources(
+                len(vertices_m), pieces,
+                [(r.source_ids, r.source_weights, len(r.held)) for r in results
+                 if r.source_ids is not None and r.source_weights is not None], rows)
         return KernelResult(joined_m, joined, held,
-                            np.concatenate([r.angles_deg for r in results]), lost_m), None
+                            np.concatenate([r.angles_deg for r in results]), lost_m,
+                            ids, weights), None
 
     return wait
 
 
 def angle_stats(vertices_m: FloatArray, faces: Faces, config: RemeshConfig) -> dict[str, float]:
     """Smallest and largest angle, and the shares of faces outside the criteria."""
-    return _angle_figures(triangle_angles_deg(vertices_m, faces), config)
+    return angle_figures(triangle_angles_deg(vertices_m, faces), config)
 
 
-def _angle_figures(angles: FloatArray, config: RemeshConfig) -> dict[str, float]:
+def angle_figures(angles: FloatArray, config: RemeshConfig) -> dict[str, float]:
     """`angle_stats` from the faces' (F, 3) `triangle_angles_deg`."""
     if len(angles) == 0:
         return {"min_angle_deg": 0.0, "max_angle_deg": 0.0, "share_below_min": 0.0,
@@ -187,7 +205,7 @@ def remesh(mesh: TriangleMesh, config: RemeshConfig, children: Sequence[KernelCh
         raise ValueError("mesh: nothing left to remesh after repair (degenerate input)")
     stats: dict[str, Any] = {"repair_removed_faces": removed, "warning": None}
     if config.iterations == 0:
-        return _cleaned_up(vertices, faces, config, stats)
+        return cleaned_up(vertices, faces, config, stats)
     judged = (config.max_kernel_added_outside is not None
               or config.max_kernel_lost_edges is not None)
     measure_lost = config.max_kernel_lost_edges is not None
@@ -204,14 +222,14 @@ def remesh(mesh: TriangleMesh, config: RemeshConfig, children: Sequence[KernelCh
     stats["warning"] = warning and f"{warning}; kept the unremeshed mesh"
     if result is not None and judged:
         given = triangle_angles_deg(vertices, faces) if given is None else given
-        stats["kernel_kept"] = _kernel_passes(_angle_figures(given, config), result, config,
+        stats["kernel_kept"] = kernel_passes(angle_figures(given, config), result, config,
                                               stats)
         if not stats["kernel_kept"]:
-            return _cleaned_up(vertices, faces, config, stats, given)
+            return cleaned_up(vertices, faces, config, stats, given)
     if result is not None:
-        return _cleaned_up(result.vertices_m, result.faces, config, stats, result.angles_deg,
+        return cleaned_up(result.vertices_m, result.faces, config, stats, result.angles_deg,
                            in_order=True)
-    return _cleaned_up(vertices, faces, config, stats, given)
+    return cleaned_up(vertices, faces, config, stats, given)
 
 
 def surface_lost_edges(input_vertices_m: FloatArray, result_vertices_m: FloatArray,
@@ -224,14 +242,14 @@ def surface_lost_edges(input_vertices_m: FloatArray, result_vertices_m: FloatArr
     return furthest_from_m(input_vertices_m, result_vertices_m) / edge_m
 
 
-def _kernel_passes(given: dict[str, float], result: KernelResult, config: RemeshConfig,
+def kernel_passes(given: dict[str, float], result: KernelResult, config: RemeshConfig,
                    stats: dict[str, Any]) -> bool:
     """Whether the kernel's result meets `max_kernel_added_outside` (against the angle
     figures it was `given`) and `max_kernel_lost_edges` (its `lost_m`, in target edge
     lengths, as `surface_lost_edges`); the figures go into `stats`."""
     passes = True
     if config.max_kernel_added_outside is not None:
-        added = _outside(_angle_figures(result.angles_deg, config)) - _outside(given)
+        added = _outside(angle_figures(result.angles_deg, config)) - _outside(given)
         passes = added <= config.max_kernel_added_outside
     if config.max_kernel_lost_edges is not None:
         assert result.lost_m is not None  # asked for wherever the limit is set
@@ -240,7 +258,7 @@ def _kernel_passes(given: dict[str, float], result: KernelResult, config: Remesh
     return passes
 
 
-def _cleaned_up(vertices_m: FloatArray, faces: Faces, config: RemeshConfig,
+def cleaned_up(vertices_m: FloatArray, faces: Faces, config: RemeshConfig,
                 stats: dict[str, Any], angles: FloatArray | None = None, in_order: bool = False
                 ) -> tuple[TriangleMesh, dict[str, Any]]:
     """The angle clean-up of a mesh, and `stats` with its angle figures added (`angles`: the
@@ -249,12 +267,12 @@ def _cleaned_up(vertices_m: FloatArray, faces: Faces, config: RemeshConfig,
     order, which was spatial, and sorting them again cost as much as the clean-up gained
     (the bunny's light remesh, 0.07 s each)."""
     angles = triangle_angles_deg(vertices_m, faces) if angles is None else angles
-    stats["angles_before_cleanup"] = _angle_figures(angles, config)
+    stats["angles_before_cleanup"] = angle_figures(angles, config)
     if not in_order:
         vertices_m, faces, face_order = in_spatial_order(vertices_m, faces)
         angles = angles[face_order]
     vertices_m, faces, angles, stats["angle_cleanup"] = enforce_angles(
         vertices_m, faces, angles, config.min_angle_deg, config.max_angle_deg,
         config.cleanup_passes)
-    stats["angles"] = _angle_figures(angles, config)
+    stats["angles"] = angle_figures(angles, config)
     return TriangleMesh(vertices_m=vertices_m, faces=faces), stats

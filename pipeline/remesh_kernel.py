@@ -49,6 +49,11 @@ class KernelResult:
     lost_m: float | None
     """How far the kernel's input vertex furthest from every vertex of the result lies from
     them, metres (`furthest_from_m`); None where it was not asked for."""
+    source_ids: NDArray[np.int64] | None = None
+    """(V, 3) the corners of the input face each result vertex lies on (`located_on`); None
+    where it was not asked for."""
+    source_weights: FloatArray | None = None
+    """(V, 3) each result vertex's barycentric coordinates on that face."""
 
 
 KernelOutcome = tuple[KernelResult | None, str | None]
@@ -113,14 +118,44 @@ def furthest_from_m(input_vertices_m: FloatArray, result_vertices_m: FloatArray)
     return float(np.sqrt(squared_m2.max()))
 
 
+def located_on(vertices_m: FloatArray, faces: Faces, points_m: FloatArray,
+               held: NDArray[np.int64]) -> tuple[NDArray[np.int64], FloatArray]:
+    """Each of (P, 3) `points_m` as a point of the mesh (`vertices_m`, `faces`): (P, 3) the
+    corners of the face nearest it and (P, 3) the barycentric coordinates of its closest
+    point there (libigl's AABB). The first H points are the mesh's vertices `held`, which
+    come back as themselves, exactly."""
+    from gpytoolbox_bindings import _point_mesh_squared_distance_cpp_impl
+
+    _, face, closest_m = _point_mesh_squared_distance_cpp_impl(
+        np.asarray(vertices_m, np.float64), np.asarray(faces, np.int32),
+        np.asarray(points_m, np.float64))
+    ids = faces[np.asarray(face).ravel()].astype(np.int64)
+    a = vertices_m[ids[:, 0]]
+    ab, ac, ap = vertices_m[ids[:, 1]] - a, vertices_m[ids[:, 2]] - a, closest_m - a
+    d00, d01, d11 = (ab * ab).sum(1), (ab * ac).sum(1), (ac * ac).sum(1)
+    d20, d21 = (ap * ab).sum(1), (ap * ac).sum(1)
+    denom = d00 * d11 - d01 * d01
+    safe = np.where(denom > 0, denom, 1.0)
+    wb = np.where(denom > 0, (d11 * d20 - d01 * d21) / safe, 0.0)
+    wc = np.where(denom > 0, (d00 * d21 - d01 * d20) / safe, 0.0)
+    weights = np.clip(np.column_stack([1.0 - wb - wc, wb, wc]), 0.0, 1.0)
+    weights /= weights.sum(axis=1, keepdims=True)
+    ids[: len(held)] = held[:, None]
+    weights[: len(held)] = (1.0, 0.0, 0.0)
+    return ids, weights
+
+
 def measured_kernel(vertices_m: FloatArray, faces: Faces, edge_m: float, iterations: int,
-                    split: bool, measure_lost: bool) -> KernelResult:
+                    split: bool, measure_lost: bool, locate: bool = False) -> KernelResult:
     """`boundary_split_kernel` (where `split`) or `kernel`, with the result's angles and, where
-    `measure_lost`, how far the input's vertices are from it (`furthest_from_m`)."""
+    `measure_lost`, how far the input's vertices are from it (`furthest_from_m`), and where
+    `locate` (not with `split`), where each of its vertices lies on the input (`located_on`)."""
     run = boundary_split_kernel if split else kernel
     out_v, out_f, held = run(vertices_m, faces, edge_m, iterations)
     lost_m = furthest_from_m(vertices_m, out_v) if measure_lost else None
-    return KernelResult(out_v, out_f, held, triangle_angles_deg(out_v, out_f), lost_m)
+    ids, weights = located_on(vertices_m, faces, out_v, held) if locate else (None, None)
+    return KernelResult(out_v, out_f, held, triangle_angles_deg(out_v, out_f), lost_m, ids,
+                        weights)
 
 
 class KernelChild:
@@ -147,7 +182,7 @@ class KernelChild:
                 stdout=subprocess.DEVNULL, stderr=stderr, env=env)
 
     def submit(self, vertices_m: FloatArray, faces: Faces, edge_m: float, iterations: int,
-               timeout_s: float, split: bool, measure_lost: bool = False
+               timeout_s: float, split: bool, measure_lost: bool = False, locate: bool = False
                ) -> Callable[[], KernelOutcome]:
         """Hands the child its request (`measured_kernel`'s arguments) and returns a call that
         waits for the outcome."""
@@ -155,7 +190,7 @@ class KernelChild:
         np.savez(request, vertices_m=np.asarray(vertices_m, np.float64),
                  faces=np.asarray(faces, np.int32), edge_m=np.float64(edge_m),
                  iterations=np.int64(iterations), split=np.bool_(split),
-                 measure_lost=np.bool_(measure_lost))
+                 measure_lost=np.bool_(measure_lost), locate=np.bool_(locate))
         assert self.process.stdin is not None
         try:
             self.process.stdin.write(f"{request}\t{result}\n".encode())
@@ -208,12 +243,13 @@ def kernel_children(count: int) -> Iterator[list[KernelChild]]:
 
 def start_isolated(vertices_m: FloatArray, faces: Faces, edge_m: float, iterations: int,
                    timeout_s: float, split: bool = True, child: KernelChild | None = None,
-                   measure_lost: bool = False) -> Callable[[], KernelOutcome]:
+                   measure_lost: bool = False, locate: bool = False
+                   ) -> Callable[[], KernelOutcome]:
     """Starts `measured_kernel` (the boundary split first where `split`) in `child` (a started
     `KernelChild`; None: one started now) and returns a call that waits for it: (result,
     None), or (None, why it failed). The caller may work meanwhile."""
     return (child or KernelChild()).submit(vertices_m, faces, edge_m, iterations, timeout_s,
-                                           split, measure_lost)
+                                           split, measure_lost, locate)
 
 
 def run_isolated(vertices_m: FloatArray, faces: Faces, edge_m: float, iterations: int,
@@ -231,11 +267,14 @@ def _read_outcome(returncode: int, result: Path, stderr: Path) -> KernelOutcome:
     try:
         with np.load(result, allow_pickle=False) as data:
             lost_m = float(data["lost_m"])
+            located = len(data["source_ids"]) > 0
             return KernelResult(np.asarray(data["vertices_m"], np.float64),
                                 np.asarray(data["faces"], np.int32),
                                 np.asarray(data["held"], np.int64),
                                 np.asarray(data["angles_deg"], np.float64),
-                                None if np.isnan(lost_m) else lost_m), None
+                                None if np.isnan(lost_m) else lost_m,
+                                np.asarray(data["source_ids"], np.int64) if located else None,
+                                np.asarray(data["source_weights"]) if located else None), None
     except (ValueError, OSError, KeyError) as exc:
         return None, f"remesh kernel returned no mesh ({exc})"
 
@@ -252,9 +291,12 @@ def _child_main() -> None:
     with np.load(request_path, allow_pickle=False) as data:
         out = measured_kernel(data["vertices_m"], data["faces"], float(data["edge_m"]),
                               int(data["iterations"]), bool(data["split"]),
-                              bool(data["measure_lost"]))
+                              bool(data["measure_lost"]), bool(data["locate"]))
+    unlocated = np.zeros((0, 3))
     np.savez(result_path, vertices_m=out.vertices_m, faces=out.faces, held=out.held,
-             angles_deg=out.angles_deg, lost_m=np.nan if out.lost_m is None else out.lost_m)
+             angles_deg=out.angles_deg, lost_m=np.nan if out.lost_m is None else out.lost_m,
+             source_ids=unlocated if out.source_ids is None else out.source_ids,
+             source_weights=unlocated if out.source_weights is None else out.source_weights)
 
 
 if __name__ == "__main__":

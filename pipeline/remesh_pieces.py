@@ -69,12 +69,13 @@ def _renumbered(faces: NDArray[np.integer], vertex_count: int
 
 def stitched(vertices_m: FloatArray, pieces: list[Piece],
              results: Sequence[tuple[FloatArray, Faces, NDArray[np.int64]]]
-             ) -> tuple[FloatArray, Faces]:
+             ) -> tuple[FloatArray, Faces, NDArray[np.int64]]:
     """The pieces' kernel results (vertices, faces, and the piece's vertices it held, which
     come first: the kernel's `held`, the piece's `held_vertices`) joined into one mesh: each
     held vertex becomes the input vertex it came from, the rest are appended; input vertices
-    no face uses any more are dropped. A ValueError where a piece moved a vertex it should
-    have held."""
+    no face uses any more are dropped. Returns the vertices, the faces and (V',) each
+    vertex's row in the input's vertices followed by each piece's new ones in turn. A
+    ValueError where a piece moved a vertex it should have held."""
     out_vertices = [vertices_m]
     out_faces = []
     next_id = len(vertices_m)
@@ -89,4 +90,19 @@ def stitched(vertices_m: FloatArray, pieces: list[Piece],
         out_faces.append(to_output[piece_faces])
         next_id += new_count
     used, faces = _renumbered(np.concatenate(out_faces), next_id)
-    return np.concatenate(out_vertices)[used], faces
+    return np.concatenate(out_vertices)[used], faces, used
+
+
+def stitched_sources(vertex_count: int, pieces: list[Piece],
+                     sources: Sequence[tuple[NDArray[np.int64], FloatArray, int]],
+                     rows: NDArray[np.int64]) -> tuple[NDArray[np.int64], FloatArray]:
+    """The joined mesh's vertices as points of the input's faces: (V', 3) input vertex ids and
+    (V', 3) weights, from each piece's kernel `sources` (ids into the piece's vertices,
+    weights, and how many vertices it held) and `stitched`'s `rows`. An input vertex is
+    itself, weight 1."""
+    ids = [np.repeat(np.arange(vertex_count, dtype=np.int64)[:, None], 3, axis=1)]
+    weights = [np.tile([1.0, 0.0, 0.0], (vertex_count, 1))]
+    for piece, (piece_ids, piece_weights, held_count) in zip(pieces, sources, strict=True):
+        ids.append(piece.vertex_ids[piece_ids[held_count:]])
+        weights.append(piece_weights[held_count:])
+    return np.concatenate(ids)[rows], np.concatenate(weights)[rows]

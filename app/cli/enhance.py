@@ -93,6 +93,16 @@ def enhance_mesh_command(
             help="Rounds of bilateral normal filtering that end the view-based update; 0: off.",
         ),
     ] = NormalFilterConfig.normal_iterations,
+    remesh_ahead: Annotated[
+        bool | None,
+        typer.Option(
+            "--remesh-ahead/--remesh-after",
+            help="Start the light remesh on the mesh the update moves, beside the networks, "
+            "and carry it onto the moved mesh (faster where a GPU runs the networks; up to "
+            "0.2 %% more C2M RMS on the benchmark's meshes), or remesh the moved mesh after "
+            "the update. Default: ahead on a GPU, after on the CPU.",
+        ),
+    ] = None,
     seed: Annotated[int, typer.Option("--seed")] = 0,
     ensemble: Annotated[
         int, typer.Option("--ensemble", help="Flipped copies of each view averaged: 1|2|4|8.")
@@ -142,6 +152,7 @@ def enhance_mesh_command(
         learned_gain=gain is None,
         min_noise_ratio=min_noise_ratio,
         normal_filter=NormalFilterConfig(normal_iterations=normal_filter),
+        remesh_ahead=remesh_ahead,
         device=device,
         weights=loaded,
     )

@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # On the device machine (carry .devpkgs .gl .meshes; see pack.sh): times the LDM per mesh on
-# CUDA with its stages (JSON lines, also in $OUT/perf.jsonl), profiles one bunny
+# CUDA with its stages (JSON lines, also in $OUT/perf.jsonl; the light remesh started ahead,
+# the default there, and once after the update for comparison), profiles one bunny
 # ($OUT/prof_bunny.txt), times the light remesh's variants ($OUT/remesh_speed.json), then runs
 # the tests that need CUDA.
 # About 3 minutes there (the twentieth session's H200), so one session's device time holds it
@@ -14,6 +15,7 @@ timed() {
 }
 timed --remesh-iterations 1
 timed --remesh-iterations 1
+timed --remesh-iterations 1 --remesh after
 timed --remesh-iterations 0
 timed --remesh-iterations 1 --profile "$out/prof_bunny.txt"
 timed --remesh-iterations 1 --mesh beetle

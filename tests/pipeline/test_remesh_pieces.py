@@ -44,7 +44,7 @@ def test_pieces_remeshed_apart_join_into_one_manifold_surface(
     pieces = spatial_pieces(mesh.faces, count)
     assert sum(len(p.faces) for p in pieces) == mesh.face_count
     results = [kernel(mesh.vertices_m[p.vertex_ids], p.faces, edge_m, 1) for p in pieces]
-    vertices_m, faces = stitched(mesh.vertices_m, pieces, results)
+    vertices_m, faces, _ = stitched(mesh.vertices_m, pieces, results)
     uses = _edge_uses(faces)
     # No seam opened and none overlaps: the boundary is the input's, every other edge has
     # two faces, and the surface keeps its topology (Euler characteristic).

@@ -1,0 +1,123 @@
+"""A remesh started before its mesh's vertices have their last positions: the enhancement's
+light remesh, started on the mesh its update is about to move.
+
+The update moves the pre-smoothed mesh's vertices and keeps its faces; the light remesh then
+remeshes the moved mesh at its own edge length. Its kernel (native, single-threaded, in
+child processes) is most of the remesh's time, and on a GPU it was most of the whole
+enhancement's, waiting for the update to end. Here it starts on the mesh the update will
+move, while the networks and the update run, and its result is carried onto the moved mesh
+when that is ready: the kernel projects each of its vertices onto the mesh it was given, so
+each lies on one of that mesh's faces (`remesh_kernel.located_on`), and it goes to the point
+with the same barycentric coordinates on that face of the moved mesh.
+
+So the kernel's splits, collapses, flips and relaxation are chosen on the surface before the
+update, which moves vertices by a fraction of an edge (the bunny's LDM update: 0.24 mm on
+average, 2.1 mm at most, edges of 5 mm), and so is whether its result is kept
+(`RemeshConfig.max_kernel_added_outside`, `max_kernel_lost_edges`). The angle clean-up runs
+on the moved mesh, as in `remesh.remesh`.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from pipeline.boundary_split import split_boundary_edges_with_parents
+from pipeline.mesh import TriangleMesh
+from pipeline.mesh_order import reordered, spatial_order
+from pipeline.mesh_repair import repair, triangle_angles_deg
+from pipeline.remesh import (
+    RemeshConfig,
+    angle_figures,
+    cleaned_up,
+    kernel_passes,
+    kernel_piece_count,
+    remesh,
+    start_pieces,
+)
+from pipeline.remesh_kernel import FloatArray, KernelChild, KernelOutcome
+
+
+@dataclass(frozen=True)
+class RemeshAhead:
+    """A remesh whose kernel is running on a mesh whose vertices will move
+    (`start_remesh_ahead`); `finish_remesh_ahead` ends it on the moved mesh."""
+
+    config: RemeshConfig
+    wait: Callable[[], KernelOutcome]
+    """Waits for the kernel's children and joins their pieces."""
+    midpoint_parents: NDArray[np.int64]
+    """(N, 2) the ends of the edge each midpoint of the boundary split bisected."""
+    vertex_order: NDArray[np.int64]
+    """(V',) the split mesh's vertex at each place of the kernel's input (a spatial order)."""
+    given: dict[str, float]
+    """The angle figures of the mesh the kernel was given (`remesh.angle_figures`)."""
+    stats: dict[str, Any]
+
+
+def start_remesh_ahead(mesh: TriangleMesh, config: RemeshConfig,
+                       children: Sequence[KernelChild] = ()) -> RemeshAhead | None:
+    """The remesh's kernel started on `mesh` (repaired, long boundary edges split, in a
+    spatial order, in pieces: `remesh.start_pieces`), each result vertex located on the
+    kernel's input. None where the repair drops a vertex, so that the moved mesh's vertices
+    would not match (then remesh the moved mesh as it is, `remesh.remesh`)."""
+    vertices_m, faces, removed = repair(mesh.vertices_m, mesh.faces, config.min_component_share)
+    if len(vertices_m) != mesh.vertex_count or config.iterations == 0 or not config.isolate:
+        return None
+    split_m, split_faces, parents = split_boundary_edges_with_parents(
+        vertices_m, faces, config.target_edge_length_m)
+    split = TriangleMesh(vertices_m=split_m, faces=split_faces)
+    order = spatial_order(split)
+    kernel_input = reordered(split, order)
+    count = kernel_piece_count(len(faces), config.kernel_processes)
+    wait = start_pieces(kernel_input.vertices_m, kernel_input.faces, count, config, children,
+                        measure_lost=config.max_kernel_lost_edges is not None, locate=True)
+    given = angle_figures(triangle_angles_deg(vertices_m, faces), config)
+    return RemeshAhead(config, wait, parents, order.vertex_order, given,
+                       {"repair_removed_faces": removed, "warning": None})
+
+
+def finish_remesh_ahead(ahead: RemeshAhead, moved: TriangleMesh
+                        ) -> tuple[TriangleMesh, dict[str, Any]]:
+    """The remesh ended on `moved`, the mesh given to `start_remesh_ahead` with its vertices
+    moved: the kernel's result carried onto it and cleaned up, or, where the kernel failed or
+    is dropped, `moved` cleaned up alone (as `remesh.remesh` does). Stats as `remesh.remesh`
+    gives them, the kernel's figures measured before the move."""
+    config, stats = ahead.config, dict(ahead.stats)
+    waited_from = time.perf_counter()
+    result, warning = ahead.wait()
+    stats["kernel_wait_s"] = time.perf_counter() - waited_from
+    stats["warning"] = warning and f"{warning}; kept the unremeshed mesh"
+    if result is not None and (config.max_kernel_added_outside is not None
+                               or config.max_kernel_lost_edges is not None):
+        stats["kernel_kept"] = kernel_passes(ahead.given, result, config, stats)
+        if not stats["kernel_kept"]:
+            result = None
+    if result is None or result.source_ids is None or result.source_weights is None:
+        out, cleanup_stats = remesh(moved, replace(config, iterations=0))
+        return out, {**cleanup_stats, **stats}
+    kernel_input_m = midpoints_extended(moved.vertices_m, ahead.midpoint_parents)[
+        ahead.vertex_order]
+    carried_m = np.einsum("vk,vkd->vd", result.source_weights,
+                          kernel_input_m[result.source_ids])
+    return cleaned_up(carried_m, result.faces, config, stats, in_order=True)
+
+
+def midpoints_extended(vertices_m: FloatArray, parents: NDArray[np.int64]) -> FloatArray:
+    """(V + N, 3) `vertices_m` followed by the N midpoints of `parents`' edges, each the mean
+    of its ends, where an end may be an earlier midpoint (a split's rounds)."""
+    out = np.concatenate([vertices_m, np.full((len(parents), 3), np.nan)])
+    todo = np.arange(len(parents))
+    while len(todo):
+        value = out[parents[todo]].mean(axis=1)
+        ready = ~np.isnan(value).any(axis=1)
+        if not ready.any():
+            raise ValueError("midpoints: a parent is a later midpoint or not finite")
+        out[len(vertices_m) + todo[ready]] = value[ready]
+        todo = todo[~ready]
+    return out
