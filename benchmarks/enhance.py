@@ -36,7 +36,12 @@ sys.path.insert(0, str(ROOT))
 
 from pipeline.enhance import EnhanceConfig, enhance_mesh  # noqa: E402
 from pipeline.enhance.bounded_noise import BoundedNoiseConfig  # noqa: E402
-from pipeline.enhance.config import STAGE_PROGRESS, light_remesh_config  # noqa: E402
+from pipeline.enhance.config import (  # noqa: E402
+    STAGE_PROGRESS,
+    light_remesh,
+    light_remesh_config,
+    remeshes_ahead,
+)
 from pipeline.enhance.data import DataConfig, noisy_along_normals  # noqa: E402
 from pipeline.enhance.metrics import c2m_summary, normal_error_deg  # noqa: E402
 from pipeline.enhance.normal_filter import NormalFilterConfig, normal_filter  # noqa: E402
@@ -130,12 +135,15 @@ def selector_same_ending(noisy, truth, base: EnhanceConfig) -> dict:
     the light remesh) with no network between: what the networks add to the rest."""
     t = time.perf_counter()
     selected = enhance_mesh(noisy, replace(base, method="selector"))
-    # As in the networks' path, the light remesh starts on the mesh the normal filter moves.
+    # As in the networks' path: on a GPU the light remesh starts on the mesh the normal
+    # filter moves (`remesh_ahead`), on the CPU it remeshes the moved mesh.
     ahead = (start_remesh_ahead(selected, light_remesh_config(selected, base.remesh_iterations))
-             if base.remesh_iterations > 0 else None)
+             if base.remesh_iterations > 0 and remeshes_ahead(base) else None)
     result = normal_filter(selected, base.normal_filter)
     if ahead is not None:
         result = finish_remesh_ahead(ahead, result)[0]
+    elif base.remesh_iterations > 0:
+        result = light_remesh(result, base.remesh_iterations)
     return score(result, truth, time.perf_counter() - t)
 
 

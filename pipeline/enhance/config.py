@@ -234,13 +234,22 @@ def _enhanced_by_views(mesh: TriangleMesh, config: EnhanceConfig, device: str,
     done("presmooth")
     if config.remesh_iterations == 0:  # the output keeps the input's order
         return restored(_updated(ordered, inputs, config, device, done), order)
-    ahead = (accelerator(device) is not None if config.remesh_ahead is None
-             else config.remesh_ahead)
-    result = (_updated_remeshed_ahead(ordered, inputs, config, device, done, children) if ahead
-              else light_remesh(_updated(ordered, inputs, config, device, done),
-                                config.remesh_iterations, children))
+    result = (_updated_remeshed_ahead(ordered, inputs, config, device, done, children)
+              if remeshes_ahead(config) else
+              light_remesh(_updated(ordered, inputs, config, device, done),
+                           config.remesh_iterations, children))
     done("remesh")
     return result
+
+
+def remeshes_ahead(config: EnhanceConfig) -> bool:
+    """Whether the light remesh starts ahead of the update (`EnhanceConfig.remesh_ahead`; by
+    default where the device is an accelerator)."""
+    from pipeline.enhance.device import accelerator, resolve_device
+
+    if config.remesh_ahead is not None:
+        return config.remesh_ahead
+    return accelerator(resolve_device(config.device).type) is not None
 
 
 def _updated_remeshed_ahead(ordered: TriangleMesh, inputs: UpdateInputs, config: EnhanceConfig,

@@ -109,15 +109,29 @@ def test_no_rings_is_off():
     assert bounded_noise_refine(noisy, smooth, BoundedNoiseConfig(rings=0)) is smooth
 
 
-@given(seed=SEEDS)
-@settings(max_examples=5, deadline=None)
-def test_a_noisy_sphere_comes_back_closer_than_its_smoothing(seed):
+def _sphere_errors_m(seed: int) -> tuple[float, float]:
+    """The radial RMS of a noisy sphere's twicing and of its bounded-noise refinement."""
     clean = sphere(0.5, 64)
     noisy = noisy_along_normals(clean, 0.01, np.random.default_rng(seed))
     smooth = twicing_smooth(noisy, 10)
     refined = bounded_noise_refine(noisy, smooth, BoundedNoiseConfig())
-    assert radial_rms_m(refined) < 0.85 * radial_rms_m(smooth)
-    assert radial_rms_m(refined) < 0.0011
+    return radial_rms_m(smooth), radial_rms_m(refined)
+
+
+@given(seed=SEEDS)
+@settings(max_examples=5, deadline=None)
+def test_a_noisy_sphere_comes_back_closer_than_its_smoothing(seed):
+    smooth_m, refined_m = _sphere_errors_m(seed)
+    assert refined_m < 0.9 * smooth_m
+
+
+def test_the_refinement_takes_a_sixth_off_the_smoothings_error():
+    """Over ten noise draws. Draws 0-399 gain 19.4 % on average; four of them gain less
+    than 15 %, the least 14.3 % (seed 94, which the property test above found when it
+    asked every draw for 15 %)."""
+    errors_m = np.array([_sphere_errors_m(seed) for seed in range(10)])
+    assert np.mean(errors_m[:, 1] / errors_m[:, 0]) < 0.85
+    assert errors_m[:, 1].max() < 0.0011
 
 
 def test_a_negative_ring_count_is_named():
