@@ -27,6 +27,10 @@ def triangle_angles_deg(vertices_m: FloatArray, faces: Faces) -> FloatArray:
     return angles
 
 
+DEGENERATE_AREA_M2 = 1e-14
+"""`repair` removes faces of this area or less."""
+
+
 def row_min(values: NDArray) -> NDArray:
     """(F,) each row's smallest of (F, 3): four times as fast as a reduction along the rows."""
     return np.minimum(np.minimum(values[:, 0], values[:, 1]), values[:, 2])
@@ -183,7 +187,7 @@ def repair(vertices_m: FloatArray, faces: Faces, min_component_share: float = 0.
     removed = {"degenerate": 0, "duplicate": 0, "non_manifold": 0}
     distinct = ((faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2])
                 & (faces[:, 2] != faces[:, 0]))
-    area_ok = face_areas(vertices, faces.astype(np.int32)) > 1e-14
+    area_ok = face_areas(vertices, faces.astype(np.int32)) > DEGENERATE_AREA_M2
     removed["degenerate"] = int(np.sum(~(distinct & area_ok)))
     faces = faces[distinct & area_ok]
     first = _first_of_each_corner_set(faces)
@@ -203,3 +207,11 @@ def repair(vertices_m: FloatArray, faces: Faces, min_component_share: float = 0.
     if min_component_share > 0:
         out_v, out_f = drop_small_components(out_v, out_f, min_component_share)
     return out_v, out_f, removed
+
+
+def is_repaired(vertices_m: FloatArray, faces: Faces) -> bool:
+    """Whether `repair` (with no small pieces dropped) leaves the mesh as it is. What it
+    checks is the faces' topology but for the degenerate faces' areas, so a mesh whose
+    vertices then move needs only `face_areas` checked again."""
+    out_vertices, out_faces, removed = repair(vertices_m, faces)
+    return len(out_vertices) == len(vertices_m) and not any(removed.values())

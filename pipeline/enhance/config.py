@@ -22,6 +22,7 @@ from pipeline.enhance.render import (
 from pipeline.enhance.update import UpdateConfig, ViewSteps, apply_view_steps, view_steps
 from pipeline.mesh import TriangleMesh, mean_edge_length_m
 from pipeline.mesh_order import reordered, restored, spatial_order
+from pipeline.mesh_repair import is_repaired
 from pipeline.remesh import RemeshConfig, kernel_piece_count, remesh
 from pipeline.remesh_ahead import finish_remesh_ahead, start_remesh_ahead
 from pipeline.remesh_kernel import KernelChild, kernel_children
@@ -223,8 +224,12 @@ def _enhanced_by_views(mesh: TriangleMesh, config: EnhanceConfig, device: str,
     # The noise gate (numpy) runs beside the render (open3d), both free of the GIL in their
     # loops. Loading the networks beside the pre-smoothing was slower on 2 cores: two
     # threads' torch ops each ask for every core (bunny 5.2-6.2 s against 4.9-5.1 s).
+    ahead = config.remesh_iterations > 0 and remeshes_ahead(config)
     with ThreadPoolExecutor(max_workers=1) as pool:
         gate = pool.submit(skips_enhancement, mesh, config, device)
+        # The update keeps the faces: where they need no repair, the remesh ahead checks
+        # only their areas on the mesh it starts on.
+        repaired = pool.submit(is_repaired, ordered.vertices_m, ordered.faces) if ahead else None
         renders = render_depth(ordered, views_for(ordered, config), with_color=True,
                                device=accelerator(device))
         if gate.result():
@@ -234,8 +239,9 @@ def _enhanced_by_views(mesh: TriangleMesh, config: EnhanceConfig, device: str,
     done("presmooth")
     if config.remesh_iterations == 0:  # the output keeps the input's order
         return restored(_updated(ordered, inputs, config, device, done), order)
-    result = (_updated_remeshed_ahead(ordered, inputs, config, device, done, children)
-              if remeshes_ahead(config) else
+    result = (_updated_remeshed_ahead(ordered, inputs, config, device, done, children,
+                                      repaired is not None and repaired.result())
+              if ahead else
               light_remesh(_updated(ordered, inputs, config, device, done),
                            config.remesh_iterations, children))
     done("remesh")
@@ -254,13 +260,16 @@ def remeshes_ahead(config: EnhanceConfig) -> bool:
 
 def _updated_remeshed_ahead(ordered: TriangleMesh, inputs: UpdateInputs, config: EnhanceConfig,
                             device: str, done: Callable[[str], None],
-                            children: Sequence[KernelChild]) -> TriangleMesh:
+                            children: Sequence[KernelChild], topology_repaired: bool
+                            ) -> TriangleMesh:
     """`_updated`, its light remesh started on the base beside the networks and the update,
-    in `children`, and carried onto the moved base (`remesh_ahead`). What starts it (repair,
-    split, order, pieces) runs in a thread: on a GPU the host has little else to do."""
+    in `children`, and carried onto the moved base (`remesh_ahead`; `topology_repaired`: the
+    base's faces need no repair but for their areas). What starts it (repair, split, order,
+    pieces) runs in a thread: on a GPU the host has little else to do."""
     remesh_config = light_remesh_config(inputs.base, config.remesh_iterations)
     with ThreadPoolExecutor(max_workers=1) as pool:
-        starting = pool.submit(start_remesh_ahead, inputs.base, remesh_config, children)
+        starting = pool.submit(start_remesh_ahead, inputs.base, remesh_config, children,
+                               topology_repaired)
         result = _updated(ordered, inputs, config, device, done)
         ahead = starting.result()
     if ahead is None:  # the repair dropped vertices: remesh the moved mesh
