@@ -12,17 +12,21 @@ Faces = NDArray[np.int32]
 
 
 def triangle_angles_deg(vertices_m: FloatArray, faces: Faces) -> FloatArray:
-    """(F, 3) interior angle at each corner of each face, degrees (0 for degenerate)."""
-    tri = vertices_m[faces]
+    """(F, 3) interior angle at each corner of each face, degrees (0 for degenerate). On the
+    coordinates' columns, as `face_areas` (a third quicker than on gathered (F, 3, 3)
+    corners, with the same bits)."""
+    columns = np.ascontiguousarray(np.asarray(vertices_m, np.float64).T)
+    corner = [[axis[faces[:, c]] for axis in columns] for c in range(3)]
     # side[c] runs from corner c to corner c + 1; corner c sits between side[c] and the
     # reversed side[c - 1], so each side's length is taken once, not twice.
-    side = [tri[:, (c + 1) % 3] - tri[:, c] for c in range(3)]
-    length = [np.linalg.norm(s, axis=1) for s in side]
+    side = [[corner[(c + 1) % 3][k] - corner[c][k] for k in range(3)] for c in range(3)]
+    length = [np.sqrt(x * x + y * y + z * z) for x, y, z in side]
     angles = np.zeros(faces.shape, dtype=np.float64)
     for c in range(3):
+        (x, y, z), (u, v, w) = side[c], side[c - 1]
         denom = length[c] * length[c - 1]
-        dot = -np.sum(side[c] * side[c - 1], axis=1)
-        cos = np.divide(dot, denom, out=np.ones(len(faces)), where=denom > 0)
+        cos = np.divide(-(x * u + y * v + z * w), denom, out=np.ones(len(faces)),
+                        where=denom > 0)
         angles[:, c] = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
     return angles
 

@@ -136,3 +136,25 @@ def test_face_areas_are_half_the_cross_products_norm() -> None:
     tri = v[f]
     expected = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
     assert np.array_equal(face_areas(v, f), expected)
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), vertices=st.integers(3, 40))
+def test_triangle_angles_are_the_gathered_corners_angles(seed: int, vertices: int) -> None:
+    """The columns' form gives the bits of the plain form on gathered corners, degenerate
+    faces (a repeated corner: 0 for each angle at a zero-length side) included."""
+    rng = np.random.default_rng(seed)
+    v = rng.normal(size=(vertices, 3))
+    f = rng.integers(0, vertices, (200, 3)).astype(np.int32)
+    tri = v[f]
+    side = [tri[:, (c + 1) % 3] - tri[:, c] for c in range(3)]
+    length = [np.linalg.norm(s, axis=1) for s in side]
+    expected = np.zeros(f.shape)
+    for c in range(3):
+        denom = length[c] * length[c - 1]
+        cos = np.divide(-np.sum(side[c] * side[c - 1], axis=1), denom, out=np.ones(len(f)),
+                        where=denom > 0)
+        expected[:, c] = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    assert np.array_equal(triangle_angles_deg(v, f), expected)
+    whole = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])
+    np.testing.assert_allclose(expected[whole].sum(axis=1), 180.0, atol=1e-4)
