@@ -67,7 +67,7 @@ def test_enhance_mesh_defaults_are_the_pipelines():
              "presmooth": "presmooth_iterations", "presmooth_passes": "presmooth_passes",
              "adaptive": "presmooth_adaptive", "learned": "presmooth_learned",
              "min_noise_ratio": "min_noise_ratio", "seed": "seed", "ensemble": "ensemble",
-             "device": "device"}
+             "device": "device", "remesh_ahead": "remesh_ahead"}
     for option, field in pairs.items():
         assert cli[option] == getattr(config, field), option
     assert cli["bounded_rings"] == config.bounded_noise.rings
@@ -111,3 +111,6 @@ def test_a_fixed_gain_replaces_the_learned_gains_and_weights_folders_carry_gains
     assert differ(learned, run("--gain", "0.35"))
     assert differ(learned, run("--weights", str(folder)))
     assert differ(learned, run("--normal-filter", "0"))
+    # The CPU remeshes after the update by default; ahead is the GPU's default.
+    assert not differ(learned, run("--remesh-after"))
+    assert differ(learned, run("--remesh-ahead"))
