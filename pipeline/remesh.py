@@ -218,17 +218,18 @@ def remesh(mesh: TriangleMesh, config: RemeshConfig, children: Sequence[KernelCh
         stats["kernel_wait_s"] = time.perf_counter() - waited_from
     else:
         result, warning = measured_kernel(vertices, faces, config.target_edge_length_m,
-                                          config.iterations, True, measure_lost), None
+                                          config.iterations, split=True,
+                                          measure_lost=measure_lost), None
     stats["warning"] = warning and f"{warning}; kept the unremeshed mesh"
     if result is not None and judged:
         given = triangle_angles_deg(vertices, faces) if given is None else given
         stats["kernel_kept"] = kernel_passes(angle_figures(given, config), result, config,
-                                              stats)
+                                             stats)
         if not stats["kernel_kept"]:
             return cleaned_up(vertices, faces, config, stats, given)
     if result is not None:
         return cleaned_up(result.vertices_m, result.faces, config, stats, result.angles_deg,
-                           in_order=True)
+                          in_order=True)
     return cleaned_up(vertices, faces, config, stats, given)
 
 
@@ -243,7 +244,7 @@ def surface_lost_edges(input_vertices_m: FloatArray, result_vertices_m: FloatArr
 
 
 def kernel_passes(given: dict[str, float], result: KernelResult, config: RemeshConfig,
-                   stats: dict[str, Any]) -> bool:
+                  stats: dict[str, Any]) -> bool:
     """Whether the kernel's result meets `max_kernel_added_outside` (against the angle
     figures it was `given`) and `max_kernel_lost_edges` (its `lost_m`, in target edge
     lengths, as `surface_lost_edges`); the figures go into `stats`."""
@@ -259,8 +260,8 @@ def kernel_passes(given: dict[str, float], result: KernelResult, config: RemeshC
 
 
 def cleaned_up(vertices_m: FloatArray, faces: Faces, config: RemeshConfig,
-                stats: dict[str, Any], angles: FloatArray | None = None, in_order: bool = False
-                ) -> tuple[TriangleMesh, dict[str, Any]]:
+               stats: dict[str, Any], angles: FloatArray | None = None, in_order: bool = False
+               ) -> tuple[TriangleMesh, dict[str, Any]]:
     """The angle clean-up of a mesh, and `stats` with its angle figures added (`angles`: the
     faces' `triangle_angles_deg`, where they are already known). The mesh is put in a spatial
     order first unless it is `in_order`, as the kernel's results are: it keeps its input's

@@ -66,13 +66,16 @@ def start_remesh_ahead(mesh: TriangleMesh, config: RemeshConfig,
     """The remesh's kernel started on `mesh` (repaired, long boundary edges split, in a
     spatial order, in pieces: `remesh.start_pieces`), each result vertex located on the
     kernel's input. None where the repair drops a vertex, so that the moved mesh's vertices
-    would not match (then remesh the moved mesh as it is, `remesh.remesh`).
+    would not match, or where the kernel runs in this process or not at all (then remesh
+    the moved mesh as it is, `remesh.remesh`).
 
     `topology_repaired`: the mesh has the faces of one that `repair` leaves as it is (the
     enhancement checks its input beside the render, `mesh_repair.is_repaired`), so only its
     faces' areas are checked here (the rest of the repair took 0.15-0.2 s of the bunny's)."""
+    if config.iterations == 0 or not config.isolate:
+        return None
     vertices_m, faces, removed = _repaired(mesh, config, topology_repaired)
-    if len(vertices_m) != mesh.vertex_count or config.iterations == 0 or not config.isolate:
+    if len(vertices_m) != mesh.vertex_count:
         return None
     split_m, split_faces, parents = split_boundary_edges_with_parents(
         vertices_m, faces, config.target_edge_length_m)
