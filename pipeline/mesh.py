@@ -34,10 +34,22 @@ class TriangleMesh:
         return replace(self, vertices_m=vertices_m, vertex_normals=None)
 
 
+def face_cross_m2(vertices_m: NDArray[np.float64], faces: NDArray[np.int32]
+                  ) -> NDArray[np.float64]:
+    """(F, 3) each face's (b - a) x (c - a), twice its area along its normal, square metres:
+    written out on the coordinates' columns, three to four times as fast as ``np.cross`` on
+    gathered (F, 3, 3) corners, with the same bits."""
+    x, y, z = np.ascontiguousarray(np.asarray(vertices_m, np.float64).T)
+    f0, f1, f2 = faces[:, 0], faces[:, 1], faces[:, 2]
+    x0, y0, z0 = x[f0], y[f0], z[f0]
+    ax, ay, az = x[f1] - x0, y[f1] - y0, z[f1] - z0
+    bx, by, bz = x[f2] - x0, y[f2] - y0, z[f2] - z0
+    return np.column_stack([ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx])
+
+
 def face_normals(vertices_m: NDArray[np.float64], faces: NDArray[np.int32]) -> NDArray[np.float64]:
     """(F, 3) unit face normals (zero for degenerate faces)."""
-    tri = vertices_m[faces]
-    normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    normals = face_cross_m2(vertices_m, faces)
     length = np.linalg.norm(normals, axis=1, keepdims=True)
     return np.divide(normals, length, out=np.zeros_like(normals), where=length > 0)
 
@@ -46,8 +58,7 @@ def vertex_normals(
     vertices_m: NDArray[np.float64], faces: NDArray[np.int32]
 ) -> NDArray[np.float32]:
     """(V, 3) area-weighted unit vertex normals."""
-    tri = vertices_m[faces]
-    weighted = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    weighted = face_cross_m2(vertices_m, faces)
     # Corner by corner in face order, the order np.add.at would sum in, at a tenth of its time.
     corners = faces.T.ravel()
     normals = np.stack([np.bincount(corners, np.tile(weighted[:, k], 3), len(vertices_m))

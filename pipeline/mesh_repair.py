@@ -7,6 +7,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from pipeline.mesh import face_cross_m2
+
 FloatArray = NDArray[np.float64]
 Faces = NDArray[np.int32]
 
@@ -67,16 +69,10 @@ def stable_argsort(keys: NDArray[np.integer]) -> NDArray[np.int64]:
 
 
 def face_areas(vertices_m: FloatArray, faces: Faces) -> FloatArray:
-    """(F,) triangle areas, square metres: the cross product written out on the coordinates'
-    columns, four times as fast as ``np.cross`` on gathered (F, 3, 3) corners, with the same
-    bits."""
-    x, y, z = np.ascontiguousarray(np.asarray(vertices_m, np.float64).T)
-    f0, f1, f2 = faces[:, 0], faces[:, 1], faces[:, 2]
-    x0, y0, z0 = x[f0], y[f0], z[f0]
-    ax, ay, az = x[f1] - x0, y[f1] - y0, z[f1] - z0
-    bx, by, bz = x[f2] - x0, y[f2] - y0, z[f2] - z0
-    cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
-    return 0.5 * np.sqrt(cx * cx + cy * cy + cz * cz)
+    """(F,) triangle areas, square metres."""
+    cross = face_cross_m2(vertices_m, faces)
+    return 0.5 * np.sqrt(cross[:, 0] * cross[:, 0] + cross[:, 1] * cross[:, 1]
+                         + cross[:, 2] * cross[:, 2])
 
 
 def edge_table(faces: Faces) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
