@@ -105,10 +105,18 @@ def faces_per_edge(opposite: NDArray[np.int64], edge_count: int) -> NDArray[np.i
 
 def compact(vertices_m: FloatArray, faces: Faces) -> tuple[FloatArray, Faces]:
     """Drop unreferenced vertices and renumber faces."""
-    used = np.zeros(len(vertices_m), dtype=bool)
+    used, renumbered = used_vertices(faces, len(vertices_m))
+    return vertices_m[used], renumbered
+
+
+def used_vertices(faces: NDArray[np.integer], vertex_count: int
+                  ) -> tuple[NDArray[np.int64], Faces]:
+    """(U,) ascending, the vertices `faces` use, and the faces renumbered onto them:
+    ``np.unique(faces, return_inverse=True)`` by marking the used vertices, with no sort."""
+    used = np.zeros(vertex_count, dtype=bool)
     used[faces.ravel()] = True
     new_index = np.cumsum(used) - 1
-    return vertices_m[used], new_index[faces].astype(np.int32)
+    return np.flatnonzero(used), new_index[faces].astype(np.int32)
 
 
 def faces_sharing_vertices(faces: Faces, vertex_count: int):
