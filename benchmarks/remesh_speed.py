@@ -36,9 +36,13 @@ from pipeline.boundary_split import split_boundary_edges, split_everywhere  # no
 from pipeline.enhance.config import EnhanceConfig, enhance_mesh  # noqa: E402
 from pipeline.mesh import TriangleMesh, mean_edge_length_m  # noqa: E402
 from pipeline.mesh_order import reordered, spatial_order  # noqa: E402
-from pipeline.mesh_repair import is_repaired, repair  # noqa: E402
+from pipeline.mesh_repair import repair  # noqa: E402
 from pipeline.remesh import RemeshConfig, kernel_piece_count, remesh  # noqa: E402
-from pipeline.remesh_ahead import finish_remesh_ahead, start_remesh_ahead  # noqa: E402
+from pipeline.remesh_ahead import (  # noqa: E402
+    checked_faces,
+    finish_remesh_ahead,
+    start_remesh_ahead,
+)
 from pipeline.remesh_kernel import kernel_children  # noqa: E402
 
 
@@ -67,15 +71,14 @@ def timed_ahead(mesh: TriangleMesh, config: RemeshConfig, overlap_s: float
                 ) -> tuple[float, float, float]:
     """Seconds of `remesh_ahead`'s start and finish, and the finish's wait for the kernel, as
     `enhance_mesh` runs them on a GPU: children started a second before, the start on the
-    mesh the update will move (its topology checked beforehand, beside the render), the
-    finish `overlap_s` later (the networks and the update) on the moved mesh. Here the mesh
-    does not move: the times do not depend on it."""
+    mesh the update will move (its faces checked beforehand, beside the render:
+    `checked_faces`), the finish `overlap_s` later (the networks and the update) on the moved
+    mesh. Here the mesh does not move: the times do not depend on it."""
     count = kernel_piece_count(mesh.face_count, config.kernel_processes)
     with kernel_children(count) as children:
         time.sleep(1.0)
         start = time.perf_counter()
-        ahead = start_remesh_ahead(mesh, config, children,
-                                   is_repaired(mesh.vertices_m, mesh.faces))
+        ahead = start_remesh_ahead(mesh, config, children, checked_faces(mesh))
         started = time.perf_counter()
         assert ahead is not None
         time.sleep(overlap_s)

@@ -37,21 +37,24 @@ def split_boundary_edges(vertices_m: FloatArray, faces: Faces, target_edge_m: fl
     return v, f
 
 
-def split_boundary_edges_with_parents(vertices_m: FloatArray, faces: Faces,
-                                      target_edge_m: float
-                                      ) -> tuple[FloatArray, Faces, NDArray[np.int64]]:
+def split_boundary_edges_with_parents(
+    vertices_m: FloatArray, faces: Faces, target_edge_m: float,
+    table: tuple[NDArray[np.int64], NDArray[np.int64]] | None = None,
+) -> tuple[FloatArray, Faces, NDArray[np.int64]]:
     """`split_boundary_edges`, and (N, 2) the ends of the edge each of the N midpoints
-    bisected (output indices; a midpoint's ends come before it)."""
+    bisected (output indices; a midpoint's ends come before it). `table`: the faces'
+    `edge_table`, where it was made beforehand (it is most of the time here)."""
     v, f = np.asarray(vertices_m, np.float64), np.asarray(faces, np.int32)
-    edges, opposite = edge_table(f)
+    edges, opposite = edge_table(f) if table is None else table
     boundary_edges = edges[faces_per_edge(opposite, len(edges)) == 1]
     on_boundary = np.zeros(len(v), dtype=bool)
     on_boundary[boundary_edges.ravel()] = True
-    length_m = np.linalg.norm(v[edges[:, 0]] - v[edges[:, 1]], axis=1)
-    wanted = (length_m > target_edge_m * 4 / 3) & on_boundary[edges].any(axis=1)
-    if not wanted.any():
+    touching = edges[on_boundary[edges[:, 0]] | on_boundary[edges[:, 1]]]
+    length_m = np.linalg.norm(v[touching[:, 0]] - v[touching[:, 1]], axis=1)
+    wanted = touching[length_m > target_edge_m * 4 / 3]
+    if len(wanted) == 0:
         return v, f, np.zeros((0, 2), dtype=np.int64)
-    region = np.flatnonzero(_faces_near(f, edges[wanted], len(v), REGION_RINGS))
+    region = np.flatnonzero(_faces_near(f, wanted, len(v), REGION_RINGS))
     split = _split_in_region(v, f, region, boundary_edges, on_boundary, target_edge_m)
     return split if split is not None else _split_all(v, f, target_edge_m)
 

@@ -33,19 +33,31 @@ class MeshOrder:
 
 
 def morton_codes(points_m: NDArray[np.float64], bits: int = MORTON_BITS) -> NDArray[np.uint64]:
-    """(N,) Z-order codes of (N, 3) points: their cells in a 2^bits grid over the bounding
-    cube, the cells' coordinate bits interleaved (x lowest)."""
+    """(N,) Z-order codes of (N, 3) points: their cells in a 2^bits grid (bits <= 21) over the
+    bounding cube, the cells' coordinate bits interleaved (x lowest)."""
     if len(points_m) == 0:
         return np.zeros(0, dtype=np.uint64)
-    low = points_m.min(axis=0)
-    span = max(float(np.ptp(points_m, axis=0).max()), 1e-300)
+    # Column by column: numpy reduces an (N, 3) array along its rows 25 times slower.
+    columns = [points_m[:, axis] for axis in range(3)]
+    low = np.array([c.min() for c in columns])
+    span = max(max(float(c.max()) - lo for c, lo in zip(columns, low, strict=True)), 1e-300)
     cells = np.minimum(((points_m - low) / span * 2**bits).astype(np.uint64), 2**bits - 1)
-    codes = np.zeros(len(points_m), dtype=np.uint64)
-    for bit in range(bits):
-        for axis in range(3):
-            codes |= ((cells[:, axis] >> np.uint64(bit)) & np.uint64(1)) << np.uint64(
-                3 * bit + axis)
-    return codes
+    return (_spread(cells[:, 0]) | (_spread(cells[:, 1]) << np.uint64(1))
+            | (_spread(cells[:, 2]) << np.uint64(2)))
+
+
+_SPREAD_STEPS = ((32, 0x1F00000000FFFF), (16, 0x1F0000FF0000FF), (8, 0x100F00F00F00F00F),
+                 (4, 0x10C30C30C30C30C3), (2, 0x1249249249249249))
+"""Shifts and masks that move bit b of a 21-bit number to bit 3 b in five steps, where a
+loop over the bits took 30."""
+
+
+def _spread(cells: NDArray[np.uint64]) -> NDArray[np.uint64]:
+    """(N,) each of (N,) numbers below 2^21 with two zero bits put after each of its bits."""
+    x = cells.copy()
+    for shift, mask in _SPREAD_STEPS:
+        x = (x | (x << np.uint64(shift))) & np.uint64(mask)
+    return x
 
 
 def spatial_order(mesh: TriangleMesh) -> MeshOrder:

@@ -30,7 +30,14 @@ from numpy.typing import NDArray
 from pipeline.boundary_split import split_boundary_edges_with_parents
 from pipeline.mesh import TriangleMesh
 from pipeline.mesh_order import reordered, spatial_order
-from pipeline.mesh_repair import DEGENERATE_AREA_M2, face_areas, repair, triangle_angles_deg
+from pipeline.mesh_repair import (
+    DEGENERATE_AREA_M2,
+    edge_table,
+    face_areas,
+    is_repaired,
+    repair,
+    triangle_angles_deg,
+)
 from pipeline.remesh import (
     RemeshConfig,
     angle_figures,
@@ -60,25 +67,47 @@ class RemeshAhead:
     stats: dict[str, Any]
 
 
+@dataclass(frozen=True)
+class CheckedFaces:
+    """What `start_remesh_ahead` needs of its mesh's faces alone, found beforehand from a mesh
+    with the same faces (`checked_faces`): the enhancement finds it beside the render, as the
+    update moves vertices and keeps the faces."""
+
+    repaired: bool
+    """`repair` (no small pieces dropped) leaves the faces as they are (`is_repaired`), so
+    only their areas need checking once the vertices have moved."""
+    edges: NDArray[np.int64]
+    """(E, 2) the faces' undirected edges (`mesh_repair.edge_table`)."""
+    opposite: NDArray[np.int64]
+    """(F, 3) the edge opposite each corner."""
+
+
+def checked_faces(mesh: TriangleMesh) -> CheckedFaces:
+    """`CheckedFaces` of `mesh`."""
+    return CheckedFaces(is_repaired(mesh.vertices_m, mesh.faces), *edge_table(mesh.faces))
+
+
 def start_remesh_ahead(mesh: TriangleMesh, config: RemeshConfig,
-                       children: Sequence[KernelChild] = (), topology_repaired: bool = False
-                       ) -> RemeshAhead | None:
+                       children: Sequence[KernelChild] = (),
+                       checked: CheckedFaces | None = None) -> RemeshAhead | None:
     """The remesh's kernel started on `mesh` (repaired, long boundary edges split, in a
     spatial order, in pieces: `remesh.start_pieces`), each result vertex located on the
     kernel's input. None where the repair drops a vertex, so that the moved mesh's vertices
     would not match, or where the kernel runs in this process or not at all (then remesh
     the moved mesh as it is, `remesh.remesh`).
 
-    `topology_repaired`: the mesh has the faces of one that `repair` leaves as it is (the
-    enhancement checks its input beside the render, `mesh_repair.is_repaired`), so only its
-    faces' areas are checked here (the rest of the repair took 0.15-0.2 s of the bunny's)."""
+    `checked`: `mesh`'s faces, checked beforehand. Where they need no repair only their areas
+    are checked here (the rest of the repair took 0.15-0.2 s of the bunny's), and the split
+    reads their edge table. Everything after the children have their pieces (the input's
+    angle figures) is off the kernel's way."""
     if config.iterations == 0 or not config.isolate:
         return None
-    vertices_m, faces, removed = _repaired(mesh, config, topology_repaired)
+    vertices_m, faces, removed = _repaired(mesh, config, checked is not None and checked.repaired)
     if len(vertices_m) != mesh.vertex_count:
         return None
+    table = (checked.edges, checked.opposite) if checked and faces is mesh.faces else None
     split_m, split_faces, parents = split_boundary_edges_with_parents(
-        vertices_m, faces, config.target_edge_length_m)
+        vertices_m, faces, config.target_edge_length_m, table)
     split = TriangleMesh(vertices_m=split_m, faces=split_faces)
     order = spatial_order(split)
     kernel_input = reordered(split, order)
@@ -90,11 +119,11 @@ def start_remesh_ahead(mesh: TriangleMesh, config: RemeshConfig,
                        {"repair_removed_faces": removed, "warning": None})
 
 
-def _repaired(mesh: TriangleMesh, config: RemeshConfig, topology_repaired: bool
+def _repaired(mesh: TriangleMesh, config: RemeshConfig, faces_repaired: bool
               ) -> tuple[FloatArray, Faces, dict[str, int]]:
-    """`repair`'s output, with only the areas checked where the topology is known repaired
-    and no small pieces are to be dropped."""
-    if (topology_repaired and config.min_component_share == 0
+    """`repair`'s output, with only the areas checked where the faces are known to need no
+    repair and no small pieces are to be dropped: then `mesh`'s own arrays."""
+    if (faces_repaired and config.min_component_share == 0
             and (face_areas(mesh.vertices_m, mesh.faces) > DEGENERATE_AREA_M2).all()):
         return mesh.vertices_m, mesh.faces, {"degenerate": 0, "duplicate": 0, "non_manifold": 0}
     return repair(mesh.vertices_m, mesh.faces, config.min_component_share)

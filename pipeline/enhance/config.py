@@ -22,9 +22,13 @@ from pipeline.enhance.render import (
 from pipeline.enhance.update import UpdateConfig, ViewSteps, apply_view_steps, view_steps
 from pipeline.mesh import TriangleMesh, mean_edge_length_m
 from pipeline.mesh_order import reordered, restored, spatial_order
-from pipeline.mesh_repair import is_repaired
 from pipeline.remesh import RemeshConfig, kernel_piece_count, remesh
-from pipeline.remesh_ahead import finish_remesh_ahead, start_remesh_ahead
+from pipeline.remesh_ahead import (
+    CheckedFaces,
+    checked_faces,
+    finish_remesh_ahead,
+    start_remesh_ahead,
+)
 from pipeline.remesh_kernel import KernelChild, kernel_children
 
 STAGE_PROGRESS = {"render": 0.03, "presmooth": 0.33, "network": 0.5, "update": 0.54,
@@ -227,9 +231,8 @@ def _enhanced_by_views(mesh: TriangleMesh, config: EnhanceConfig, device: str,
     ahead = config.remesh_iterations > 0 and remeshes_ahead(config)
     with ThreadPoolExecutor(max_workers=1) as pool:
         gate = pool.submit(skips_enhancement, mesh, config, device)
-        # The update keeps the faces: where they need no repair, the remesh ahead checks
-        # only their areas on the mesh it starts on.
-        repaired = pool.submit(is_repaired, ordered.vertices_m, ordered.faces) if ahead else None
+        # The update keeps the faces: the remesh ahead reads what they need here.
+        checked = pool.submit(checked_faces, ordered) if ahead else None
         renders = render_depth(ordered, views_for(ordered, config), with_color=True,
                                device=accelerator(device))
         if gate.result():
@@ -240,7 +243,7 @@ def _enhanced_by_views(mesh: TriangleMesh, config: EnhanceConfig, device: str,
     if config.remesh_iterations == 0:  # the output keeps the input's order
         return restored(_updated(ordered, inputs, config, device, done), order)
     result = (_updated_remeshed_ahead(ordered, inputs, config, device, done, children,
-                                      repaired is not None and repaired.result())
+                                      checked.result() if checked is not None else None)
               if ahead else
               light_remesh(_updated(ordered, inputs, config, device, done),
                            config.remesh_iterations, children))
@@ -260,16 +263,16 @@ def remeshes_ahead(config: EnhanceConfig) -> bool:
 
 def _updated_remeshed_ahead(ordered: TriangleMesh, inputs: UpdateInputs, config: EnhanceConfig,
                             device: str, done: Callable[[str], None],
-                            children: Sequence[KernelChild], topology_repaired: bool
+                            children: Sequence[KernelChild], checked: CheckedFaces | None
                             ) -> TriangleMesh:
     """`_updated`, its light remesh started on the base beside the networks and the update,
-    in `children`, and carried onto the moved base (`remesh_ahead`; `topology_repaired`: the
-    base's faces need no repair but for their areas). What starts it (repair, split, order,
-    pieces) runs in a thread: on a GPU the host has little else to do."""
+    in `children`, and carried onto the moved base (`remesh_ahead`; `checked`: the base's
+    faces, checked beforehand). What starts it (repair, split, order, pieces) runs in a
+    thread: on a GPU the host has little else to do."""
     remesh_config = light_remesh_config(inputs.base, config.remesh_iterations)
     with ThreadPoolExecutor(max_workers=1) as pool:
         starting = pool.submit(start_remesh_ahead, inputs.base, remesh_config, children,
-                               topology_repaired)
+                               checked)
         result = _updated(ordered, inputs, config, device, done)
         ahead = starting.result()
     if ahead is None:  # the repair dropped vertices: remesh the moved mesh

@@ -6,7 +6,11 @@ import trimesh
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.boundary_split import split_boundary_edges, split_everywhere
+from pipeline.boundary_split import (
+    split_boundary_edges,
+    split_boundary_edges_with_parents,
+    split_everywhere,
+)
 from pipeline.mesh_repair import edge_table, face_areas, faces_per_edge
 
 
@@ -69,8 +73,12 @@ def test_the_rounds_near_the_long_edges_equal_the_rounds_on_the_whole_mesh(
     expected_v, expected_f = split_everywhere(v, f, target_m)
     with mock.patch.object(boundary_split, "REGION_RINGS", rings):
         out_v, out_f = split_boundary_edges(v, f, target_m)
+        # The faces' edge table made beforehand (`remesh_ahead.checked_faces`) changes nothing.
+        given_v, given_f, _ = split_boundary_edges_with_parents(v, f, target_m, edge_table(f))
     np.testing.assert_array_equal(out_v, expected_v)
     np.testing.assert_array_equal(out_f, expected_f)
+    np.testing.assert_array_equal(given_v, expected_v)
+    np.testing.assert_array_equal(given_f, expected_f)
 
 
 def test_a_chain_that_reaches_the_region_rim_is_refused() -> None:

@@ -72,6 +72,21 @@ def test_morton_codes_grow_along_each_axis(seed: int, axis: int) -> None:
     assert codes[-1] > codes[0]
 
 
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), bits=st.integers(1, 21))
+def test_morton_codes_interleave_the_cells_bits(seed: int, bits: int) -> None:
+    """Each code has bit b of the point's x, y and z cells at bits 3 b, 3 b + 1, 3 b + 2."""
+    points = np.random.default_rng(seed).uniform(-1, 1, (200, 3))
+    codes = morton_codes(points, bits)
+    cells = np.minimum(((points - points.min(axis=0)) / np.ptp(points, axis=0).max()
+                        * 2**bits).astype(np.int64), 2**bits - 1)
+    for bit in range(bits):
+        for axis in range(3):
+            np.testing.assert_array_equal((codes.astype(np.int64) >> (3 * bit + axis)) & 1,
+                                          (cells[:, axis] >> bit) & 1)
+    assert codes.max() < 2 ** (3 * bits)
+
+
 def test_an_empty_mesh_has_an_empty_order() -> None:
     empty = TriangleMesh(vertices_m=np.zeros((0, 3)), faces=np.zeros((0, 3), np.int32))
     order = spatial_order(empty)

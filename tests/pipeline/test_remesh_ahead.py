@@ -11,7 +11,12 @@ from hypothesis import strategies as st
 
 from pipeline.mesh import TriangleMesh, mean_edge_length_m
 from pipeline.remesh import RemeshConfig, remesh
-from pipeline.remesh_ahead import finish_remesh_ahead, midpoints_extended, start_remesh_ahead
+from pipeline.remesh_ahead import (
+    checked_faces,
+    finish_remesh_ahead,
+    midpoints_extended,
+    start_remesh_ahead,
+)
 from pipeline.remesh_kernel import located_on
 from tests.pipeline.test_remesh_pieces import _noisy_sphere
 
@@ -117,24 +122,27 @@ def test_points_on_a_mesh_are_located_on_its_faces() -> None:
     assert ids[:2].tolist() == [[3, 3, 3], [8, 8, 8]] and found[:2, 0].tolist() == [1.0, 1.0]
 
 
-def test_a_topology_known_repaired_checks_only_the_areas() -> None:
-    """`is_repaired` says a mesh needs nothing; started with that known, the remesh is the
-    one that repairs first. A face the move made degenerate is still found and removed."""
+def test_faces_checked_beforehand_give_the_same_remesh() -> None:
+    """`checked_faces` says the faces need nothing and hands over their edge table; started
+    with them, the remesh is the one that repairs and builds the table itself. A face the move
+    made degenerate is still found and removed."""
     from pipeline.mesh_repair import is_repaired
 
     mesh = _noisy_sphere(8, True)
-    assert is_repaired(mesh.vertices_m, mesh.faces)
+    checked = checked_faces(mesh)
+    assert checked.repaired and len(checked.opposite) == mesh.face_count
     config = _config(mesh, 2)
-    known, known_stats = finish_remesh_ahead(start_remesh_ahead(mesh, config, (), True), mesh)
-    checked, _ = finish_remesh_ahead(start_remesh_ahead(mesh, config), mesh)
-    np.testing.assert_array_equal(known.faces, checked.faces)
-    np.testing.assert_array_equal(known.vertices_m, checked.vertices_m)
+    known, known_stats = finish_remesh_ahead(start_remesh_ahead(mesh, config, (), checked), mesh)
+    checked_here, _ = finish_remesh_ahead(start_remesh_ahead(mesh, config), mesh)
+    np.testing.assert_array_equal(known.faces, checked_here.faces)
+    np.testing.assert_array_equal(known.vertices_m, checked_here.vertices_m)
     flat_m = mesh.vertices_m.copy()
     a, b, c = mesh.faces[0]
     flat_m[c] = (flat_m[a] + flat_m[b]) / 2  # face 0 loses its area
     flat = TriangleMesh(vertices_m=flat_m, faces=mesh.faces)
-    _, flat_stats = finish_remesh_ahead(start_remesh_ahead(flat, config, (), True), flat)
+    _, flat_stats = finish_remesh_ahead(start_remesh_ahead(flat, config, (), checked), flat)
     assert flat_stats["repair_removed_faces"]["degenerate"] >= 1
     assert known_stats["repair_removed_faces"]["degenerate"] == 0
     duplicated = np.vstack([mesh.faces, mesh.faces[:1]])
     assert not is_repaired(mesh.vertices_m, duplicated)
+    assert not checked_faces(TriangleMesh(vertices_m=mesh.vertices_m, faces=duplicated)).repaired
