@@ -76,6 +76,27 @@ three it does. The six best of 19 settings tried on the bunny (twelfth session; 
 the filter's own setting for the update's output 5.73 mm on raw noise)."""
 
 
+MESH_SUFFIXES = (".obj", ".ply", ".off", ".stl", ".glb", ".gltf")
+"""The mesh files a protocol mesh may come as (what `read_mesh` reads)."""
+
+
+def protocol_mesh_file(meshes: Path, name: str) -> Path:
+    """The file of protocol mesh `name`: a path to a mesh file, or the file of that stem in
+    the folder `meshes` with one of `MESH_SUFFIXES`. ValueError naming both where none is."""
+    if Path(name).is_file():
+        return Path(name)
+    for suffix in MESH_SUFFIXES:
+        if (meshes / f"{name}{suffix}").is_file():
+            return meshes / f"{name}{suffix}"
+    raise ValueError(f"mesh {name!r}: no such file, nor {name}{{{','.join(MESH_SUFFIXES)}}} "
+                     f"in {meshes}")
+
+
+def protocol_mesh_names(meshes: Path) -> list[str]:
+    """The stems of the folder's mesh files (`MESH_SUFFIXES`), sorted."""
+    return sorted({p.stem for p in meshes.iterdir() if p.suffix.lower() in MESH_SUFFIXES})
+
+
 def bunny_protocol(meshes: Path, seed: int, edge_m: float = 0.005, name: str = "stanford-bunny",
                    split_boundary: bool = True):
     """(ground truth, noisy) meshes of the protocol (the bunny, or another mesh by `name`; one
@@ -91,7 +112,7 @@ def bunny_protocol(meshes: Path, seed: int, edge_m: float = 0.005, name: str = "
     from pipeline.io.mesh_io import read_mesh
     from pipeline.mesh_repair import repair
 
-    m = read_mesh(meshes / f"{name}.obj")
+    m = read_mesh(protocol_mesh_file(meshes, name))
     v = m.vertices_m
     v = (v - 0.5 * (v.min(0) + v.max(0))) / np.ptp(v[:, 1])
     f = m.faces.astype(np.int32)
@@ -337,7 +358,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--meshes", default=str(ROOT.parent / "shared" / "data" / "meshes"))
     ap.add_argument("--weights", default=None, help="folder of .safetensors (default: shipped)")
-    ap.add_argument("--mesh", default="stanford-bunny", help="protocol mesh (default: the bunny)")
+    ap.add_argument("--mesh", default="stanford-bunny",
+                    help="protocol mesh: a name in --meshes or a mesh file (default: the bunny)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--views", type=int, default=6)
     ap.add_argument("--resolution", type=int, default=256)

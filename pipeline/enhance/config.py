@@ -25,6 +25,7 @@ from pipeline.mesh_order import reordered, restored, spatial_order
 from pipeline.remesh import RemeshConfig, kernel_piece_count, remesh
 from pipeline.remesh_ahead import (
     CheckedFaces,
+    RemeshAhead,
     checked_faces,
     finish_remesh_ahead,
     start_remesh_ahead,
@@ -269,10 +270,12 @@ def _updated_remeshed_ahead(ordered: TriangleMesh, inputs: UpdateInputs, config:
     in `children`, and carried onto the moved base (`remesh_ahead`; `checked`: the base's
     faces, checked beforehand). What starts it (repair, split, order, pieces) runs in a
     thread: on a GPU the host has little else to do."""
-    remesh_config = light_remesh_config(inputs.base, config.remesh_iterations)
+    def start() -> RemeshAhead | None:
+        remesh_config = light_remesh_config(inputs.base, config.remesh_iterations)
+        return start_remesh_ahead(inputs.base, remesh_config, children, checked)
+
     with ThreadPoolExecutor(max_workers=1) as pool:
-        starting = pool.submit(start_remesh_ahead, inputs.base, remesh_config, children,
-                               checked)
+        starting = pool.submit(start)
         result = _updated(ordered, inputs, config, device, done)
         ahead = starting.result()
     if ahead is None:  # the repair dropped vertices: remesh the moved mesh

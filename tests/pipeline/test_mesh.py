@@ -5,7 +5,13 @@ import trimesh
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.mesh import face_cross_m2, face_normals, vertex_normals
+from pipeline.mesh import (
+    TriangleMesh,
+    face_cross_m2,
+    face_normals,
+    mean_edge_length_m,
+    vertex_normals,
+)
 
 
 @settings(max_examples=20, deadline=None)
@@ -17,6 +23,19 @@ def test_face_cross_is_numpys_cross_of_the_gathered_corners(seed: int, vertices:
     tri = v[f]
     assert np.array_equal(face_cross_m2(v, f),
                           np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]))
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), vertices=st.integers(3, 30))
+def test_mean_edge_length_is_numpys_norm_of_the_gathered_ends(seed: int, vertices: int) -> None:
+    """Coordinate by coordinate, the same bits as the mean of np.linalg.norm over each face's
+    three edges in turn."""
+    rng = np.random.default_rng(seed)
+    v = rng.normal(size=(vertices, 3)) * 10.0 ** rng.uniform(-3, 1)
+    f = rng.integers(0, vertices, (100, 3)).astype(np.int32)
+    ends = [(v[f[:, c]], v[f[:, (c + 1) % 3]]) for c in range(3)]
+    expected = np.concatenate([np.linalg.norm(a - b, axis=1) for a, b in ends]).mean()
+    assert mean_edge_length_m(TriangleMesh(vertices_m=v, faces=f)) == float(expected)
 
 
 def test_normals_of_a_sphere_point_out_and_a_degenerate_face_has_none() -> None:
