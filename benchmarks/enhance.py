@@ -105,12 +105,15 @@ def bunny_protocol(meshes: Path, seed: int, edge_m: float = 0.005, name: str = "
     Boundary edges are cut to about `edge_m` first (`split_boundary_edges`), as the
     pipeline's remesh does: the kernel holds the boundary and never splits them, which left
     hubs of up to 514 neighbours on beetle, 135 on the teapot and bunny boundary edges of up
-    to 24 mm; `split_boundary` False gives that earlier protocol (up to the tenth session)."""
-    import gpytoolbox
+    to 24 mm; `split_boundary` False gives that earlier protocol (up to the tenth session).
 
+    The remesh (gpytoolbox's `remesh_botsch`, 10 rounds, projected) runs in a child
+    (`remesh_kernel.run_isolated`, the same arrays as in this process): on a Möbius strip it
+    aborts its process, which here is a ValueError for that mesh alone."""
     from pipeline.boundary_split import split_boundary_edges
     from pipeline.io.mesh_io import read_mesh
     from pipeline.mesh_repair import repair
+    from pipeline.remesh_kernel import start_isolated
 
     m = read_mesh(protocol_mesh_file(meshes, name))
     v = m.vertices_m
@@ -120,8 +123,10 @@ def bunny_protocol(meshes: Path, seed: int, edge_m: float = 0.005, name: str = "
     def remeshed(v, f):
         if split_boundary:
             v, f = split_boundary_edges(v, f, edge_m)
-        return gpytoolbox.remesh_botsch(v.astype(np.float64), f.astype(np.int32), 10, edge_m,
-                                        True)
+        result, why = start_isolated(v, f, edge_m, 10, 1800.0, split=False)()
+        if result is None:
+            raise ValueError(f"{name}: the protocol's remesh: {why}")
+        return result.vertices_m, result.faces
 
     try:
         vr, fr = remeshed(v, f)
