@@ -75,10 +75,11 @@ def timed_ahead(mesh: TriangleMesh, config: RemeshConfig, overlap_s: float
     `checked_faces`), the finish `overlap_s` later (the networks and the update) on the moved
     mesh. Here the mesh does not move: the times do not depend on it."""
     count = kernel_piece_count(mesh.face_count, config.kernel_processes)
+    checked = checked_faces(mesh)  # beside the render, in `enhance_mesh`
     with kernel_children(count) as children:
         time.sleep(1.0)
         start = time.perf_counter()
-        ahead = start_remesh_ahead(mesh, config, children, checked_faces(mesh))
+        ahead = start_remesh_ahead(mesh, config, children, checked)
         started = time.perf_counter()
         assert ahead is not None
         time.sleep(overlap_s)
