@@ -112,9 +112,14 @@ def boundary_half_edges(faces: torch.Tensor, vertex_count: int) -> torch.Tensor:
     one face uses, in face then corner order (`boundary.boundary_half_edges`' order)."""
     # Corner c's opposite edge runs from corner c + 1 to corner c + 2.
     half = torch.stack([faces.roll(-1, dims=1), faces.roll(-2, dims=1)], dim=2).reshape(-1, 2)
-    keys = half.amin(dim=1) * vertex_count + half.amax(dim=1)
-    _, edge_of, uses = torch.unique(keys, return_inverse=True, return_counts=True)
-    return half[uses[edge_of] == 1]
+    low, high = torch.minimum(half[:, 0], half[:, 1]), torch.maximum(half[:, 0], half[:, 1])
+    # A key unlike both its sorted neighbours is an edge one face uses: on the CPU 0.27 ->
+    # 0.16 s for beetle's 1.5 M half-edges, against torch.unique's inverse and counts.
+    keys, order = torch.sort(low * vertex_count + high)
+    alone = torch.ones(len(keys), dtype=torch.bool, device=keys.device)
+    alone[1:] &= keys[1:] != keys[:-1]
+    alone[:-1] &= keys[:-1] != keys[1:]
+    return half[torch.sort(order[alone]).values]
 
 
 def csr_rows(rows: torch.Tensor, columns: torch.Tensor, row_count: int
