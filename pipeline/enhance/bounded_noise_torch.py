@@ -10,6 +10,7 @@ import torch
 from pipeline.enhance import mesh_torch
 from pipeline.enhance.bounded_noise import BoundedNoiseConfig, residual_kurtosis
 from pipeline.enhance.device import csr_tensor, on_device
+from pipeline.enhance.twicing_blend import along
 from pipeline.mesh import TriangleMesh
 
 
@@ -19,7 +20,7 @@ def refined(noisy: TriangleMesh, smooth: TriangleMesh, config: BoundedNoiseConfi
     faces = on_device(smooth.faces.astype(np.int64), device)
     smooth_m = on_device(smooth.vertices_m, device)
     normals = mesh_torch.vertex_normals(smooth_m, faces).double()
-    residual_m = ((on_device(noisy.vertices_m, device) - smooth_m) * normals).sum(1)
+    residual_m = along(on_device(noisy.vertices_m, device) - smooth_m, normals)
     if residual_kurtosis(residual_m) >= config.max_kurtosis:
         return smooth
     pattern = mesh_torch.neighbour_pattern(faces, smooth.vertex_count)
