@@ -15,14 +15,14 @@ from pipeline.mesh import TriangleMesh
 
 
 def refined(noisy: TriangleMesh, smooth: TriangleMesh, config: BoundedNoiseConfig,
-            device: str) -> TriangleMesh:
-    """`bounded_noise_refine(noisy, smooth, config)` (`config.rings` > 0) on `device`."""
+            device: str) -> TriangleMesh | None:
+    """`refined_where_bounded(noisy, smooth, config)` (`config.rings` > 0) on `device`."""
     faces = on_device(smooth.faces.astype(np.int64), device)
     smooth_m = on_device(smooth.vertices_m, device)
     normals = mesh_torch.vertex_normals(smooth_m, faces).double()
     residual_m = along(on_device(noisy.vertices_m, device) - smooth_m, normals)
     if residual_kurtosis(residual_m) >= config.max_kurtosis:
-        return smooth
+        return None
     pattern = mesh_torch.neighbour_pattern(faces, smooth.vertex_count)
     low_m, high_m = neighbourhood_range(residual_m, pattern, config.rings)
     middle_m = 0.5 * (low_m + high_m)

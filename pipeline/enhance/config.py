@@ -9,7 +9,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.enhance.bounded_noise import BoundedNoiseConfig, bounded_noise_refine
+from pipeline.enhance.bounded_noise import BoundedNoiseConfig
 from pipeline.enhance.noise_level import noise_to_edge_ratio
 from pipeline.enhance.normal_filter import NormalFilterConfig, normal_filter
 from pipeline.enhance.render import (
@@ -183,7 +183,7 @@ def enhance_mesh(
     (``remesh_iterations``), the smoothers keep the connectivity. The networks return a mesh
     less noisy than ``min_noise_ratio`` as it came (`skips_enhancement`)."""
     from pipeline.enhance import baselines
-    from pipeline.enhance.inference import learned_twicing, model_bytes
+    from pipeline.enhance.inference import model_bytes, selector_presmoothed
 
     validate_config(config)
     if mesh.vertex_count == 0 or mesh.face_count == 0:
@@ -198,13 +198,12 @@ def enhance_mesh(
         return baselines.adaptive_twicing(mesh, baselines.AdaptiveTwicingConfig())
     if config.method == "bilateral":
         return baselines.bilateral_denoise(mesh, config.iterations)
-    from pipeline.enhance.device import accelerator, resolve_device
+    from pipeline.enhance.device import resolve_device
 
     device = resolve_device(config.device).type
     if config.method == "selector":
-        return bounded_noise_refine(
-            mesh, learned_twicing(mesh, model_bytes(config, "selector"), device),
-            config.bounded_noise, accelerator(device))
+        return selector_presmoothed(mesh, model_bytes(config, "selector"), config.bounded_noise,
+                                    device)
 
     def done(stage: str) -> None:
         if progress is not None:

@@ -253,12 +253,35 @@ def presmoothed(
     if iterations == 0:
         return mesh
     if selector is not None:
-        smooth = learned_twicing(mesh, selector, device)
-    else:
-        smooth = presmooth(mesh, iterations, passes, adaptive)
+        return selector_presmoothed(mesh, selector, bounded, device)
+    smooth = presmooth(mesh, iterations, passes, adaptive)
     if bounded is None:
         return smooth
     return bounded_noise_refine(mesh, smooth, bounded, accelerator(device))
+
+
+def selector_presmoothed(mesh: TriangleMesh, selector: bytes, bounded: BoundedNoiseConfig | None,
+                         device: str | None = None) -> TriangleMesh:
+    """The selector's (safetensors bytes) blend of the mesh's twicings, then `bounded`'s
+    refinement where given and where it runs (`refined_where_bounded`): from the blend of
+    the weights averaged over the neighbours (`BoundedNoiseConfig.weight_passes`); where it
+    does not run, the blend as it is. The smoothing steps run on `device` (None: scipy)."""
+    from pipeline.enhance.bounded_noise import refined_where_bounded
+    from pipeline.enhance.device import accelerator
+    from pipeline.enhance.twicing_blend import blend, twicing_candidates, weights_averaged
+
+    model = load_selector(selector)
+    candidates = twicing_candidates(mesh, model.config.blend, device)
+    weights = by_row_chunks(model, candidates.features, device or "cpu")
+    blended = mesh.with_vertices(blend(candidates.vertices_m, weights))
+    if bounded is None:
+        return blended
+    base = blended
+    if bounded.weight_passes > 0:
+        base = mesh.with_vertices(blend(
+            candidates.vertices_m, weights_averaged(candidates, weights, bounded.weight_passes)))
+    refined = refined_where_bounded(mesh, base, bounded, accelerator(device))
+    return blended if refined is None else refined
 
 
 def model_bytes(config: EnhanceConfig, name: str) -> bytes:

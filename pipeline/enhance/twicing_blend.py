@@ -59,6 +59,9 @@ class TwicingCandidates:
     """(V, F) per-vertex features, lengths in units of `noise_std_m`."""
     noise_std_m: float
     """Estimated standard deviation of the vertex noise along the normals."""
+    average: Callable[[NDArray[np.float32]], NDArray[np.float32]]
+    """(V, C) float32 rows -> each vertex's neighbours' mean row, where the candidates were
+    made (`FieldOps.average`): for the selector's weights (`weights_averaged`)."""
 
 
 @dataclass(frozen=True)
@@ -178,8 +181,9 @@ def twicing_candidates(
         columns += [pilot_move**2, pilot_move, from_pilot**2]
     scales = _multiscale(ops.average, ops.columns(columns), config.feature_rings)
     features = np.concatenate([ops.to_numpy(a) for a in scales], axis=1)
-    return TwicingCandidates(np.stack([ops.to_numpy(c) for c in candidates]), features,
-                             noise_std_m)
+    return TwicingCandidates(
+        np.stack([ops.to_numpy(c) for c in candidates]), features, noise_std_m,
+        lambda rows: ops.to_numpy(ops.average(ops.to_field(rows))))
 
 
 def along(field: Any, normals: Any) -> Any:
@@ -246,6 +250,15 @@ def _multiscale(average: Callable[[Any], Any], columns, rings: tuple[int, ...]) 
         done = r
         out.append(a)
     return out
+
+
+def weights_averaged(candidates: TwicingCandidates, weights: NDArray[np.float32], passes: int
+                     ) -> NDArray[np.float32]:
+    """(V, K) the selector's weights, each vertex's replaced by its neighbours' mean `passes`
+    times (each row still sums to 1)."""
+    for _ in range(passes):
+        weights = candidates.average(weights)
+    return weights
 
 
 def blend(candidates: NDArray[np.float64], weights: NDArray) -> NDArray[np.float64]:

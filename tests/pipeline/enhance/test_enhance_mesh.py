@@ -175,22 +175,29 @@ def test_the_light_remesh_drops_the_kernel_where_it_adds_bad_faces(shape: str) -
 
 
 def test_the_view_update_ends_with_the_normal_filter() -> None:
+    """The output is the normal filter's of what the update gives without it (in the stages'
+    own order, so to rounding). That the filter helps is its own tests' and the benchmark's
+    (`ldm_4_steps_no_normal_filter`): on this sphere, since the refinement starts from the
+    selector's averaged weights (twenty-second session), the update leaves it nothing to take
+    (0.37360 mm radial RMS without it, 0.37363 with it)."""
     from pipeline.enhance.data import noisy_along_normals
+    from pipeline.enhance.normal_filter import normal_filter
     from tests.pipeline.enhance.conftest import sphere
 
-    # Edges short against the radius, as the filter assumes (2.5 cm on a 0.5 m sphere; on the
-    # fixtures' 24-segment sphere, 6.5 cm edges, it bends a clean surface by 2.5 mm).
+    # Edges short against the radius, as the filter assumes (2.5 cm on a 0.5 m sphere).
     noisy = noisy_along_normals(sphere(0.5, 64), 0.01, np.random.default_rng(0))
 
-    def enhanced(normal_filter: NormalFilterConfig) -> TriangleMesh:
+    def enhanced(config: NormalFilterConfig) -> TriangleMesh:
         return enhance_mesh(noisy, EnhanceConfig(method="regressor", resolution=96,
                                                  remesh_iterations=0, min_noise_ratio=0.0,
-                                                 normal_filter=normal_filter))
+                                                 normal_filter=config))
 
     filtered, unfiltered = enhanced(NormalFilterConfig()), enhanced(OFF)
-    assert filtered.face_count == unfiltered.face_count
-    assert not np.allclose(filtered.vertices_m, unfiltered.vertices_m)
-    assert radial_rms_m(filtered) < radial_rms_m(unfiltered)
+    assert not np.allclose(filtered.vertices_m, unfiltered.vertices_m, atol=1e-6)
+    np.testing.assert_allclose(filtered.vertices_m,
+                               normal_filter(unfiltered, NormalFilterConfig()).vertices_m,
+                               atol=1e-9)
+    np.testing.assert_array_equal(filtered.faces, unfiltered.faces)
 
 
 def test_the_output_keeps_the_input_order_whatever_it_is() -> None:
