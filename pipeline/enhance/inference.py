@@ -217,16 +217,9 @@ def vertex_gains(model, features: NDArray[np.float32], device: str = "cpu"
 def learned_twicing(mesh: TriangleMesh, selector: bytes, device: str | None = None
                     ) -> TriangleMesh:
     """The mesh as the selector's (safetensors bytes) per-vertex blend of its twicings, the
-    smoothing steps on `device` (`twicing_blend.twicing_candidates`; None: scipy)."""
-    return apply_selector(load_selector(selector), mesh, device)
-
-
-def apply_selector(model, mesh: TriangleMesh, device: str | None = None) -> TriangleMesh:
-    """The mesh as a loaded `TwicingSelector`'s per-vertex blend of its twicings."""
-    from pipeline.enhance.twicing_blend import twicing_candidates
-
-    candidates = twicing_candidates(mesh, model.config.blend, device)
-    return mesh.with_vertices(selector_blend(model, candidates, device or "cpu"))
+    smoothing steps on `device` (`twicing_blend.twicing_candidates`; None: scipy): the
+    pre-smoothing with no refinement (`selector_presmoothed`)."""
+    return selector_presmoothed(mesh, selector, None, device)
 
 
 def selector_blend(model, candidates: TwicingCandidates, device: str = "cpu"
