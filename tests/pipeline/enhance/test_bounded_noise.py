@@ -137,6 +137,8 @@ def test_the_refinement_takes_a_sixth_off_the_smoothings_error():
 def test_a_negative_ring_count_is_named():
     with pytest.raises(ValueError, match="bounded_noise"):
         validate_config(EnhanceConfig(bounded_noise=BoundedNoiseConfig(rings=-1)))
+    with pytest.raises(ValueError, match="weight_passes"):
+        validate_config(EnhanceConfig(bounded_noise=BoundedNoiseConfig(weight_passes=-1)))
 
 
 @pytest.mark.parametrize("open_boundary", [False, True])
