@@ -54,7 +54,7 @@ loop over the bits took 30."""
 
 def _spread(cells: NDArray[np.uint64]) -> NDArray[np.uint64]:
     """(N,) each of (N,) numbers below 2^21 with two zero bits put after each of its bits."""
-    x = cells.copy()
+    x = cells
     for shift, mask in _SPREAD_STEPS:
         x = (x | (x << np.uint64(shift))) & np.uint64(mask)
     return x

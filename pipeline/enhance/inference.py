@@ -266,15 +266,15 @@ def selector_presmoothed(mesh: TriangleMesh, selector: bytes, bounded: BoundedNo
     model = load_selector(selector)
     candidates = twicing_candidates(mesh, model.config.blend, device)
     weights = by_row_chunks(model, candidates.features, device or "cpu")
-    blended = mesh.with_vertices(blend(candidates.vertices_m, weights))
+
+    def blended(rows: NDArray[np.float32]) -> TriangleMesh:
+        return mesh.with_vertices(blend(candidates.vertices_m, rows))
+
     if bounded is None:
-        return blended
-    base = blended
-    if bounded.weight_passes > 0:
-        base = mesh.with_vertices(blend(
-            candidates.vertices_m, weights_averaged(candidates, weights, bounded.weight_passes)))
+        return blended(weights)
+    base = blended(weights_averaged(candidates, weights, bounded.weight_passes))
     refined = refined_where_bounded(mesh, base, bounded, accelerator(device))
-    return blended if refined is None else refined
+    return blended(weights) if refined is None else refined
 
 
 def model_bytes(config: EnhanceConfig, name: str) -> bytes:
