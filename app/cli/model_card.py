@@ -58,7 +58,8 @@ def model_card(report: dict) -> str:
                                  remasked is not None)
     lines += _refined_lines(report.get("refined"), remasked is not None)
     lines += _remasked_lines(remasked, "rebased" in report)
-    lines += _rebased_lines(report.get("rebased"))
+    lines += _rebased_lines(report.get("rebased"), "averaged" in report)
+    lines += _averaged_lines(report.get("averaged"))
     lines += ["", "Config (of the first run above):", "", "```json", json.dumps(cfg, indent=1),
               "```", ""]
     return "\n".join(lines)
@@ -322,18 +323,21 @@ def _remasked_lines(remasked: dict | None, superseded: bool = False) -> list[str
     return lines
 
 
-def _rebased_lines(rebased: dict | None) -> list[str]:
+def _rebased_lines(rebased: dict | None, superseded: bool = False) -> list[str]:
     """The card's section on the regressor, LDM and vertex gains trained again on pairs whose
     base ends with the bounded-noise refinement (a `--init ... --stages
-    regressor,finetune,gain` run), with its command."""
+    regressor,finetune,gain` run), with its command; `superseded`: the next section's
+    networks are shipped (`_averaged_lines`)."""
     if not rebased:
         return []
     data, r, f, g = rebased["data"], rebased["regressor"], rebased["finetune"], rebased["gain"]
     v = rebased["validation"]
+    shipped = ("superseded: the next section's are shipped" if superseded
+               else "these are the shipped regressor, vae, ldm and vertex gains")
     lines = [
         "",
-        "## Trained again on the bounded-noise refinement's base (seventeenth session; these "
-        "are the shipped regressor, vae, ldm and vertex gains)",
+        f"## Trained again on the bounded-noise refinement's base (seventeenth session; "
+        f"{shipped})",
         "",
         f"- run as `{rebased['command']}` on {rebased['device']}, from the weights of the last "
         f"section; pairs in {data['minutes']} minutes: {data['train_pairs']} training, "
@@ -360,6 +364,54 @@ def _rebased_lines(rebased: dict | None) -> list[str]:
               f"{x['bulk_rmse_permille']:.3f} | {x['bulk_normal_rmse_permille']:.3f} |"
               for k, x in v.items() if isinstance(x, dict)]
     return lines + ["", f"  {rebased['validation_note']}", f"- mesh level, {rebased['mesh_level']}"]
+
+
+def _averaged_lines(averaged: dict | None) -> list[str]:
+    """The card's section on the regressor, LDM and vertex gains trained again on pairs whose
+    refinement starts from the selector's averaged weights: the report of a `--init ...
+    --stages regressor,finetune,gain` run (its training.json, less the loss logs), with its
+    command, and how the shipped networks were made from it (`interpolate-weights`)."""
+    if not averaged:
+        return []
+    data, g = averaged["data"], averaged["gain"]
+    v = averaged["finetune"]["validation"]
+    lines = [
+        "",
+        "## Trained again on the refinement from the selector's averaged weights, then "
+        "interpolated with the last section's (twenty-third session; the shipped regressor, vae, "
+        "ldm and vertex gains)",
+        "",
+        f"- shipped: {averaged['shipped']}",
+        f"- run as `{averaged['command']}` on {averaged['device']}, from the weights of the "
+        f"last section; pairs in {data['seconds'] / 60:.1f} minutes: {data['train_pairs']} "
+        f"training, {data['validation_pairs']} validation, same meshes and split as above",
+        "- the base depth is the shipped selector's blend of twicings ended by the bounded-noise "
+        "refinement, which now starts from the blend of the selector's weights averaged over "
+        "each vertex's neighbours (`BoundedNoiseConfig.weight_passes`), as the enhance stage "
+        "makes it since the twenty-second session",
+        f"- the vertex gains then {g['methods']['ldm']['steps']} steps each on {g['draws']} "
+        f"draws of the seven real training meshes (data {g['data_seconds'] / 60:.1f} minutes); "
+        "the depth networks stored as float16",
+        *_stage_table(averaged),
+        "",
+        f"Validation of the run's own networks, {v['views']} held-apart renders of the mesh "
+        "mix (thousandths of the depth range, as in the last section; the base is the new "
+        "one):",
+        "",
+        "| method | RMSE | edge RMSE | bulk RMSE | bulk normal RMSE |",
+        "| --- | --- | --- | --- | --- |",
+    ]
+    lines += [f"| {k} | {x['rmse_permille']:.3f} | {x['edge_rmse_permille']:.3f} | "
+              f"{x['bulk_rmse_permille']:.3f} | {x['bulk_normal_rmse_permille']:.3f} |"
+              for k, x in v.items() if isinstance(x, dict)]
+    lines += ["", "Vertex gains, held-out meshes, one draw each, RMS distance to the truth in "
+              "thousandths of the extent (no light remesh):", "",
+              "| mesh | pre-smoothed | ldm, fixed gain | ldm, learned gains | regressor, fixed "
+              "gain | regressor, learned gains |", "| --- | --- | --- | --- | --- | --- |"]
+    lines += [f"| {m} | {x['presmoothed']:.3f} | {x['ldm_fixed_gain']:.3f} | "
+              f"{x['ldm_learned_gain']:.3f} | {x['regressor_fixed_gain']:.3f} | "
+              f"{x['regressor_learned_gain']:.3f} |" for m, x in g["validation"].items()]
+    return lines + ["", f"- mesh level, {averaged['mesh_level']}"]
 
 
 def _stage_table(run: dict) -> list[str]:

@@ -66,10 +66,9 @@ class DataConfig:
     off (adaptive twicing); the LDM refining it was fine-tuned with it on."""
     presmooth_bounded: bool = True
     """The pre-smoothing ends with `bounded_noise_refine` (default settings), as the enhance
-    stage's does (`EnhanceConfig.bounded_noise`). The shipped regressor, LDM and vertex gains
-    were last fine-tuned with it on (MODEL_CARD.md, last section), before it started from the
-    selector's weights averaged over the neighbours (`BoundedNoiseConfig.weight_passes`,
-    twenty-second session), which pairs made now have."""
+    stage's does (`EnhanceConfig.bounded_noise`), starting from the selector's weights averaged
+    over the neighbours (`BoundedNoiseConfig.weight_passes`). The shipped regressor, LDM and
+    vertex gains were last fine-tuned on such pairs (MODEL_CARD.md, last section)."""
     color_probability: float = 0.5
     """Chance a pose's mesh gets synthetic colour (`synthetic_colors`), whose Canny edges the
     networks then read as at inference on a coloured mesh; the other poses have none (edges

@@ -180,6 +180,22 @@ def selector_ensemble_to_bytes(selectors: list[bytes], half: bool = False) -> by
     return weights_to_bytes(SelectorEnsemble(members).state_dict(), meta, half)
 
 
+def interpolated_weights(start: bytes, end: bytes, share_of_end: float) -> bytes:
+    """safetensors bytes (float16, as shipped) of the network whose every floating tensor is
+    (1 - share_of_end) * start's + share_of_end * end's: the weight-space average of a
+    fine-tuned network and the one it was fine-tuned from (WiSE-FT, Wortsman et al. 2022),
+    which keeps more of the earlier network's behaviour on data unlike the fine-tuning's.
+    Both must hold the same network (the same config and tensors)."""
+    start_state, start_config = weights_from_bytes(start)
+    end_state, end_config = weights_from_bytes(end)
+    if start_config != end_config or start_state.keys() != end_state.keys() or any(
+            start_state[k].shape != end_state[k].shape for k in end_state):
+        raise ValueError("the two files hold different networks")
+    state = {k: v.lerp(end_state[k], share_of_end) if v.is_floating_point() else end_state[k]
+             for k, v in start_state.items()}
+    return weights_to_bytes(state, end_config, half=True)
+
+
 def load_vertex_gain(data: bytes):
     from pipeline.enhance.models.vertex_gain import VertexGainConfig, VertexGainNet
 

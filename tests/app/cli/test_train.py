@@ -136,7 +136,9 @@ def test_the_shipped_model_card_is_the_one_its_training_report_renders():
     assert card == model_card(report)
     assert "## The LDM refines the regressor (superseded" in card
     assert "tight loss mask (superseded: the next section's are shipped)" in card
-    assert "refinement's base (seventeenth session; these are the shipped" in card
+    assert "refinement's base (seventeenth session; superseded: the next section's" in card
+    assert "averaged weights, then interpolated with the last section's (twenty-third" in card
+    assert report["averaged"]["finetune"]["validation"]["views"] == 24
     assert report["remasked"]["loss_mask_threshold_n"] == 0.02
 
 
