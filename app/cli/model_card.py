@@ -356,14 +356,18 @@ def _rebased_lines(rebased: dict | None, superseded: bool = False) -> list[str]:
         f"- validation, {v['views']} held-apart renders of the mesh mix (thousandths of the "
         "depth range, as in the last section; the base is the new one, so the rows are not "
         "comparable with the last section's):",
-        "",
-        "| method | RMSE | edge RMSE | bulk RMSE | bulk normal RMSE |",
-        "| --- | --- | --- | --- | --- |",
+        *_bulk_table(v),
     ]
-    lines += [f"| {k} | {x['rmse_permille']:.3f} | {x['edge_rmse_permille']:.3f} | "
-              f"{x['bulk_rmse_permille']:.3f} | {x['bulk_normal_rmse_permille']:.3f} |"
-              for k, x in v.items() if isinstance(x, dict)]
     return lines + ["", f"  {rebased['validation_note']}", f"- mesh level, {rebased['mesh_level']}"]
+
+
+def _bulk_table(validation: dict) -> list[str]:
+    """The depth-level validation table with the bulk columns (the tight loss mask's runs)."""
+    return ["", "| method | RMSE | edge RMSE | bulk RMSE | bulk normal RMSE |",
+            "| --- | --- | --- | --- | --- |",
+            *[f"| {k} | {x['rmse_permille']:.3f} | {x['edge_rmse_permille']:.3f} | "
+              f"{x['bulk_rmse_permille']:.3f} | {x['bulk_normal_rmse_permille']:.3f} |"
+              for k, x in validation.items() if isinstance(x, dict)]]
 
 
 def _averaged_lines(averaged: dict | None) -> list[str]:
@@ -397,13 +401,8 @@ def _averaged_lines(averaged: dict | None) -> list[str]:
         f"Validation of the run's own networks, {v['views']} held-apart renders of the mesh "
         "mix (thousandths of the depth range, as in the last section; the base is the new "
         "one):",
-        "",
-        "| method | RMSE | edge RMSE | bulk RMSE | bulk normal RMSE |",
-        "| --- | --- | --- | --- | --- |",
+        *_bulk_table(v),
     ]
-    lines += [f"| {k} | {x['rmse_permille']:.3f} | {x['edge_rmse_permille']:.3f} | "
-              f"{x['bulk_rmse_permille']:.3f} | {x['bulk_normal_rmse_permille']:.3f} |"
-              for k, x in v.items() if isinstance(x, dict)]
     lines += ["", "Vertex gains, held-out meshes, one draw each, RMS distance to the truth in "
               "thousandths of the extent (no light remesh):", "",
               "| mesh | pre-smoothed | ldm, fixed gain | ldm, learned gains | regressor, fixed "
