@@ -90,7 +90,7 @@ class RemeshConfig:
             raise ValueError("remesh: kernel_processes must be None or >= 1")
 
 
-MIN_PIECE_FACES = 50_000
+MIN_PIECE_FACES = 25_000
 """Faces a piece of the kernel's work has at least (`kernel_processes`): a child takes about
 0.2 s to start, the kernel about 5 us a face (the bunny's LDM update, 211 k faces, 0.95 s)."""
 

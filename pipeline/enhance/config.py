@@ -234,14 +234,16 @@ def _enhanced_by_views(mesh: TriangleMesh, config: EnhanceConfig, device: str,
     ahead = config.remesh_iterations > 0 and remeshes_ahead(config)
     with ThreadPoolExecutor(max_workers=1) as pool:
         gate = pool.submit(skips_enhancement, mesh, config, device)
-        # The update keeps the faces: the remesh ahead reads what they need here.
+        # The update keeps the faces: the remesh ahead reads what they need beside the render
+        # and the pre-smoothing (waited for at the render's end, they took the device host's
+        # render from 0.05 to 0.21-0.23 s).
         checked = pool.submit(checked_faces, ordered) if ahead else None
         renders = render_depth(ordered, views_for(ordered, config), with_color=True,
                                device=accelerator(device))
         if gate.result():
             done("remesh")
             return mesh
-    inputs = update_inputs(ordered, config, device, done, renders)
+        inputs = update_inputs(ordered, config, device, done, renders)
     done("presmooth")
     if config.remesh_iterations == 0:  # the output keeps the input's order
         return restored(_updated(ordered, inputs, config, device, done), order)

@@ -1,0 +1,30 @@
+#!/usr/bin/env bash
+# On the device machine (carry .devpkgs .gl .meshes .base; see pack.sh and pack_base.sh): the
+# bunny's LDM enhancement on CUDA, the light remesh ahead (the default there), timed for an
+# earlier commit's code (.base/, with this tree's weights) and for this tree, alternating on
+# one machine, each run a fresh process (JSON lines, also in $OUT/ab.jsonl); then this tree
+# without the remesh, on beetle and profiled ($OUT/prof_bunny.txt), and the tests that need
+# CUDA. About 4 minutes there.
+set -uo pipefail
+source "$(dirname "$0")/setup.sh"
+out=${OUT:-.}
+here=$(pwd)
+timed() {  # LABEL DIR ARGS...
+  local label=$1 dir=$2
+  shift 2
+  (cd "$dir" && python3 benchmarks/enhance.py --perf-child --meshes "$here/.meshes" \
+    --device cuda --weights "$here/pipeline/enhance/weights" "$@" 2>>"$out/err.txt") |
+    sed "s/^{/{\"code\": \"$label\", /" | tee -a "$out/ab.jsonl"
+}
+base="base $(cut -c1-7 .base/COMMIT)"
+for _ in 1 2; do
+  timed "$base" .base
+  timed tree .
+done
+timed tree .
+timed tree . --remesh-iterations 0
+timed tree . --mesh beetle
+timed tree . --profile "$out/prof_bunny.txt"
+if python3 -c "import pytest, hypothesis" 2>/dev/null; then
+  python3 -m pytest -q -p no:cacheprovider tests/pipeline/enhance -k cuda 2>&1 | tail -5
+fi
