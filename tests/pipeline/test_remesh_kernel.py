@@ -9,7 +9,15 @@ import pytest
 from pipeline.mesh import mean_edge_length_m
 from pipeline.mesh_repair import triangle_angles_deg
 from pipeline.remesh import RemeshConfig, remesh, start_kernel
-from pipeline.remesh_kernel import KernelChild, furthest_from_m, kernel_children, run_isolated
+from pipeline.remesh_kernel import (
+    KernelChild,
+    _read_outcome,
+    furthest_from_m,
+    kernel_children,
+    load_arrays,
+    run_isolated,
+    save_arrays,
+)
 from tests.pipeline.test_remesh import _bumpy_sphere
 from tests.pipeline.test_remesh_pieces import _noisy_sphere
 
@@ -79,3 +87,21 @@ def test_the_figures_measured_in_the_children_are_the_joined_meshes(pieces: int)
         assert result.lost_m == whole_m
     unmeasured, _ = start_kernel(mesh.vertices_m, mesh.faces, config)()
     assert unmeasured is not None and unmeasured.lost_m is None
+
+
+def test_arrays_pass_through_a_folder_as_they_were(tmp_path) -> None:
+    arrays = {"vertices_m": np.random.default_rng(0).random((5, 3)),
+              "faces": np.arange(6, dtype=np.int32).reshape(2, 3),
+              "edge_m": np.float64(0.005), "split": np.bool_(True)}
+    save_arrays(tmp_path / "request", **arrays)
+    loaded = load_arrays(tmp_path / "request")
+    assert loaded.keys() == arrays.keys()
+    for name, array in arrays.items():
+        assert loaded[name].dtype == array.dtype
+        np.testing.assert_array_equal(loaded[name], array)
+
+
+def test_a_result_missing_an_array_is_no_mesh(tmp_path) -> None:
+    save_arrays(tmp_path / "result", vertices_m=np.zeros((3, 3)))
+    result, why = _read_outcome(0, tmp_path / "result", tmp_path / "stderr.txt")
+    assert result is None and why is not None and "returned no mesh" in why
