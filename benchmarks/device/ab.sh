@@ -4,7 +4,7 @@
 # earlier commit's code (.base/, with this tree's weights) and for this tree, alternating on
 # one machine, each run a fresh process (JSON lines, also in $OUT/ab.jsonl); then this tree
 # without the remesh, on beetle and profiled ($OUT/prof_bunny.txt), and the tests that need
-# CUDA. About 4 minutes there.
+# CUDA. About 3.5 minutes there (204 s on the twenty-fourth session's H100, with the unpacking).
 set -uo pipefail
 source "$(dirname "$0")/setup.sh"
 out=${OUT:-.}

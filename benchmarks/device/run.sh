@@ -4,7 +4,8 @@
 # the default there, and once after the update for comparison), profiles one bunny
 # ($OUT/prof_bunny.txt), times the light remesh's variants ($OUT/remesh_speed.json), then runs
 # the tests that need CUDA.
-# About 3 minutes there (the twentieth session's H200), so one session's device time holds it
+# About 4 minutes there (224 s on the twenty-fourth session's H100, unpacking included), so
+# one session's device time holds it
 # with its machine's start.
 set -uo pipefail
 source "$(dirname "$0")/setup.sh"
