@@ -45,9 +45,9 @@ def weights_from_bytes(data: bytes, device: str | torch.device = "cpu"
     The file's tensor bytes go to `device` in one copy and each dtype's tensors are converted
     there in one op, then handed out as views. Loaded on the CPU and then moved, torch's CPU
     ops on the weights (a cat and a conversion, parallel on every core) waited on the cores
-    of the light remesh's children, starting beside them: on an H100 machine the networks'
-    stage took 0.57-0.75 s with the children and 0.23 s without; loaded this way, 0.24-0.37 s
-    with them (README, the H100 section)."""
+    of the light remesh's children, starting beside them. On one H100 machine the networks'
+    stage took 0.57-0.59 s that way and 0.24-0.37 s loaded this way, with the children both
+    times; 0.23-0.24 s with none (README, the H100 section)."""
     import torch
 
     header_len = int.from_bytes(data[:8], "little")
