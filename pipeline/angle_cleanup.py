@@ -10,7 +10,8 @@ The operations take the faces' angles and hand them on with the rows of the face
 changed recomputed: a pass touches a few hundred of a few hundred thousand faces, and
 measuring every angle again was a third of the clean-up's time. For the same reason each
 operation builds its edge table over the faces around its candidates only
-(`_near_edge_table`).
+(`_near_edge_table`), and `enforce_angles` runs the passes on a patch around the faces
+outside the criteria, not on the whole mesh.
 """
 
 from __future__ import annotations
@@ -122,15 +123,18 @@ def flip_caps(vertices_m: FloatArray, faces: Faces, angles_deg: FloatArray,
 
 
 def collapse_needles(vertices_m: FloatArray, faces: Faces, angles_deg: FloatArray,
-                     min_angle_deg: float) -> tuple[FloatArray, Faces, FloatArray, int]:
+                     min_angle_deg: float
+                     ) -> tuple[FloatArray, Faces, FloatArray, NDArray[np.bool_], int]:
     """Collapse the shortest edge of each face with an angle below min_angle_deg to its
     midpoint, where both ends are interior, the link condition holds and no face folds.
     `angles_deg` (F, 3) are the faces' `triangle_angles_deg`. Returns the mesh (the merged
-    ends left in its vertices, used by no face), its faces' angles, collapses."""
+    ends left in its vertices, used by no face), its faces' angles, (F,) the input's faces
+    that are kept, and collapses."""
     angles = angles_deg
+    all_kept = np.ones(len(faces), dtype=bool)
     cand_face = np.nonzero(row_min(angles) < min_angle_deg)[0]
     if len(cand_face) == 0:
-        return vertices_m, faces, angles, 0
+        return vertices_m, faces, angles, all_kept, 0
     _, edges, opposite, row = _near_edge_table(faces, cand_face, len(vertices_m))
     counts = faces_per_edge(opposite, len(edges))
     # Right at the candidates' vertices, which are all that is read of it.
@@ -144,7 +148,7 @@ def collapse_needles(vertices_m: FloatArray, faces: Faces, angles_deg: FloatArra
     keep = ~boundary_vertex[b] & (counts[edge] == 2)
     a, b = a[keep], b[keep]
     if len(a) == 0:
-        return vertices_m, faces, angles, 0
+        return vertices_m, faces, angles, all_kept, 0
     from scipy.sparse import coo_matrix
 
     n = len(vertices_m)
@@ -177,7 +181,7 @@ def collapse_needles(vertices_m: FloatArray, faces: Faces, angles_deg: FloatArra
     kept_end[a] = True
     changed = kept_end[out_f].any(axis=1)
     out_angles[changed] = triangle_angles_deg(new_pos, out_f[changed])
-    return new_pos, out_f, out_angles, len(a)
+    return new_pos, out_f, out_angles, alive, len(a)
 
 
 def _turned(vertices_m: FloatArray, faces: Faces, new_pos: FloatArray, new_faces: Faces,
@@ -226,16 +230,17 @@ def _ring_exclusive(priority: FloatArray, a: NDArray[np.int64], b: NDArray[np.in
 
 def drop_boundary_slivers(vertices_m: FloatArray, faces: Faces, angles_deg: FloatArray,
                           min_angle_deg: float, max_angle_deg: float
-                          ) -> tuple[Faces, FloatArray, int]:
+                          ) -> tuple[Faces, FloatArray, NDArray[np.bool_], int]:
     """Remove faces outside the angle criteria that lie on the mesh boundary, where neither
     a flip nor a collapse can fix them: ears (two boundary edges), and faces with one
     boundary edge whose opposite vertex is interior (removing them keeps it manifold).
     `angles_deg` (F, 3) are the faces' `triangle_angles_deg`. Returns faces, their angles,
-    drops."""
+    (F,) the input's faces that are kept, and drops."""
     angles = angles_deg
-    cand = np.nonzero((row_min(angles) < min_angle_deg) | (row_max(angles) > max_angle_deg))[0]
+    keep = np.ones(len(faces), dtype=bool)
+    cand = np.nonzero(_outside(angles, min_angle_deg, max_angle_deg))[0]
     if len(cand) == 0:
-        return faces, angles, 0
+        return faces, angles, keep, 0
     _, edges, opposite, row = _near_edge_table(faces, cand, len(vertices_m))
     counts = faces_per_edge(opposite, len(edges))
     on_boundary = counts[opposite[row]] == 1  # (C, 3): edge opposite each corner is a boundary
@@ -245,13 +250,84 @@ def drop_boundary_slivers(vertices_m: FloatArray, faces: Faces, angles_deg: Floa
     apex = faces[cand, np.argmax(on_boundary, axis=1)]
     cand = cand[(n_boundary == 2) | ((n_boundary == 1) & ~boundary_vertex[apex])]
     if len(cand) == 0:
-        return faces, angles, 0
+        return faces, angles, keep, 0
     priority = row_min(angles[cand])
     chosen = cand[_rank_claims(priority, [faces[cand, 0], faces[cand, 1], faces[cand, 2]],
                                len(vertices_m))]
-    keep = np.ones(len(faces), dtype=bool)
     keep[chosen] = False
-    return faces[keep], angles[keep], len(chosen)
+    return faces[keep], angles[keep], keep, len(chosen)
+
+
+def _outside(angles_deg: FloatArray, min_angle_deg: float, max_angle_deg: float
+             ) -> NDArray[np.bool_]:
+    """(F,) the faces with an angle outside the criteria."""
+    return (row_min(angles_deg) < min_angle_deg) | (row_max(angles_deg) > max_angle_deg)
+
+
+PATCH_RINGS = 2
+"""How many rings around the faces outside the criteria `enforce_angles` works on. An
+operation reads the faces at the corners of a face it fixes, and the faces it leaves outside
+the criteria are next to it: on the bunny's, beetle's and suzanne's light remesh one ring was
+enough for every pass. Where an operation would reach the patch's rim all the same, the
+clean-up runs on the whole mesh."""
+
+
+def _patch(faces: Faces, seed_faces: NDArray[np.bool_], vertex_count: int, rings: int
+           ) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.bool_]]:
+    """The faces near the (F,) `seed_faces`: (P,) the vertices they use, ascending, (R,) the
+    faces, ascending, and (P,) which of the vertices are complete (within `rings` rings of a
+    seed's corner, so every face of the mesh at them is in the patch)."""
+    # Index columns converted once: a gather converts int32 indices on every call.
+    columns = [faces[:, c].astype(np.intp) for c in range(3)]
+    near = np.zeros(vertex_count, dtype=bool)
+    near[faces[seed_faces].ravel()] = True
+    for _ in range(rings):
+        near[faces[near[columns[0]] | near[columns[1]] | near[columns[2]]].ravel()] = True
+    rows = np.flatnonzero(near[columns[0]] | near[columns[1]] | near[columns[2]])
+    used = np.zeros(vertex_count, dtype=bool)
+    used[faces[rows].ravel()] = True
+    vertices = np.flatnonzero(used)
+    return vertices, rows, near[vertices]
+
+
+def _reaches_rim(faces: Faces, angles_deg: FloatArray, min_angle_deg: float,
+                 max_angle_deg: float, complete: NDArray[np.bool_] | None) -> bool:
+    """Whether a face outside the criteria, which the next operation may take, has a corner
+    not `complete`: there the patch's tables would not say what the mesh's say."""
+    if complete is None:
+        return False
+    return not complete[faces[_outside(angles_deg, min_angle_deg, max_angle_deg)]].all()
+
+
+def _passes(vertices_m: FloatArray, faces: Faces, angles_deg: FloatArray, min_angle_deg: float,
+            max_angle_deg: float, passes: int, complete: NDArray[np.bool_] | None
+            ) -> tuple[FloatArray, Faces, FloatArray, NDArray[np.int64], dict[str, int]] | None:
+    """`enforce_angles`' passes on a mesh or on a patch of one (`complete` as `_patch` gives
+    it, None for a whole mesh): (V, 3) vertices, the merged ends left in them, the faces, their
+    angles, (F',) the input rows they come from, and the operation counts; None where an
+    operation would reach the patch's rim."""
+    stats = {"flips": 0, "collapses": 0, "boundary_drops": 0}
+    rows, angles = np.arange(len(faces)), angles_deg
+    for _ in range(passes):
+        if _reaches_rim(faces, angles, min_angle_deg, max_angle_deg, complete):
+            return None
+        faces, angles, flips = flip_caps(vertices_m, faces, angles, max_angle_deg)
+        if _reaches_rim(faces, angles, min_angle_deg, max_angle_deg, complete):
+            return None
+        vertices_m, faces, angles, kept, collapses = collapse_needles(vertices_m, faces, angles,
+                                                                      min_angle_deg)
+        rows = rows[kept]
+        if _reaches_rim(faces, angles, min_angle_deg, max_angle_deg, complete):
+            return None
+        faces, angles, kept, drops = drop_boundary_slivers(vertices_m, faces, angles,
+                                                           min_angle_deg, max_angle_deg)
+        rows = rows[kept]
+        stats["flips"] += flips
+        stats["collapses"] += collapses
+        stats["boundary_drops"] += drops
+        if flips == 0 and collapses == 0 and drops == 0:
+            break
+    return vertices_m, faces, angles, rows, stats
 
 
 def enforce_angles(vertices_m: FloatArray, faces: Faces, angles_deg: FloatArray,
@@ -259,19 +335,36 @@ def enforce_angles(vertices_m: FloatArray, faces: Faces, angles_deg: FloatArray,
                    ) -> tuple[FloatArray, Faces, FloatArray, dict[str, int]]:
     """Flip caps, collapse needles, drop boundary slivers for a few passes, starting from the
     faces' `triangle_angles_deg` (`angles_deg`, (F, 3)); returns the mesh, its faces' angles
-    and operation counts."""
-    stats = {"flips": 0, "collapses": 0, "boundary_drops": 0}
-    angles = angles_deg
-    for _ in range(passes):
-        faces, angles, flips = flip_caps(vertices_m, faces, angles, max_angle_deg)
-        vertices_m, faces, angles, collapses = collapse_needles(vertices_m, faces, angles,
-                                                                min_angle_deg)
-        faces, angles, drops = drop_boundary_slivers(vertices_m, faces, angles, min_angle_deg,
-                                                     max_angle_deg)
-        stats["flips"] += flips
-        stats["collapses"] += collapses
-        stats["boundary_drops"] += drops
-        if flips == 0 and collapses == 0 and drops == 0:
-            break
-    vertices_m, faces = compact(vertices_m, faces)
-    return vertices_m, faces, angles, stats
+    and operation counts.
+
+    The passes run on the faces within `PATCH_RINGS` rings of those outside the criteria,
+    numbered in the mesh's order, so every choice is the one the whole mesh would give and
+    the result is the same bit for bit. The bunny's light remesh ahead has 211 k faces, 31 of
+    them outside the criteria: its clean-up went 64-68 -> 18-20 ms (min-median) on 2 cores,
+    beetle's 231-257 -> 48-55 ms, the same meshes."""
+    outside = _outside(angles_deg, min_angle_deg, max_angle_deg)
+    if not outside.any():
+        out_v, out_f = compact(vertices_m, faces)
+        return out_v, out_f, angles_deg, {"flips": 0, "collapses": 0, "boundary_drops": 0}
+    vertices, rows, complete = _patch(faces, outside, len(vertices_m), PATCH_RINGS)
+    local_id = np.zeros(len(vertices_m), dtype=np.int64)
+    local_id[vertices] = np.arange(len(vertices))
+    done = _passes(vertices_m[vertices], local_id[faces[rows]].astype(np.int32),
+                   angles_deg[rows], min_angle_deg, max_angle_deg, passes, complete)
+    if done is None:
+        vertices, rows = np.arange(len(vertices_m)), np.arange(len(faces))
+        done = _passes(vertices_m, faces, angles_deg, min_angle_deg, max_angle_deg, passes, None)
+        assert done is not None  # a whole mesh has no rim
+    patch_vertices_m, patch_faces, patch_angles, kept_rows, stats = done
+    out_v = vertices_m.copy()
+    out_v[vertices] = patch_vertices_m
+    kept = np.ones(len(faces), dtype=bool)
+    kept[rows] = False
+    kept[rows[kept_rows]] = True
+    # Where each kept row lands once the others are gone.
+    out_row = np.cumsum(kept) - 1
+    out_f, out_angles = faces[kept], angles_deg[kept]
+    out_f[out_row[rows[kept_rows]]] = vertices[patch_faces]
+    out_angles[out_row[rows[kept_rows]]] = patch_angles
+    out_v, out_f = compact(out_v, out_f)
+    return out_v, out_f, out_angles, stats
