@@ -3,8 +3,8 @@
 # bunny's LDM enhancement on CUDA, the light remesh ahead (the default there), timed for an
 # earlier commit's code (.base/, with this tree's weights) and for this tree, alternating on
 # one machine, each run a fresh process (JSON lines, also in $OUT/ab.jsonl); then this tree
-# without the remesh, on beetle and profiled ($OUT/prof_bunny.txt), and the tests that need
-# CUDA. About 3.5 minutes there (204 s on the twenty-fourth session's H100, with the unpacking).
+# warmed up at the timed shapes (a worker's second mesh: `--warm-up full`), without the
+# remesh, on beetle and profiled ($OUT/prof_bunny.txt), and the tests that need CUDA. About 3.5 minutes there (204 s on the twenty-fourth session's H100, with the unpacking).
 set -uo pipefail
 source "$(dirname "$0")/setup.sh"
 out=${OUT:-.}
@@ -22,6 +22,8 @@ for _ in 1 2; do
   timed tree .
 done
 timed tree .
+timed tree . --warm-up full
+timed tree . --warm-up full
 timed tree . --remesh-iterations 0
 timed tree . --mesh beetle
 timed tree . --profile "$out/prof_bunny.txt"
