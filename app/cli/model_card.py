@@ -189,7 +189,7 @@ def _gain_lines(report: dict) -> list[str]:
 def _presmoothing(data: dict) -> str:
     iterations, passes = data.get("presmooth_iterations", 0), data.get("presmooth_passes", 1)
     if data.get("presmooth_learned") and iterations > 0:
-        blend = "the shipped selector's per-vertex blend of twicings (`learned_twicing`)"
+        blend = "the shipped selector's per-vertex blend of twicings (`selector_presmoothed`)"
         if data.get("presmooth_bounded"):
             blend += ", then the bounded-noise refinement (`bounded_noise_refine`)"
         return blend

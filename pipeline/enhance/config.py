@@ -50,7 +50,7 @@ class EnhanceConfig:
     method: str = "ldm"
     """ldm | regressor | views (raw renders into the update) | taubin | laplacian | twicing |
     adaptive (twicing, its count chosen per vertex) | selector (a learned per-vertex blend of
-    twicings, `learned_twicing`) | bilateral."""
+    twicings, `selector_presmoothed`) | bilateral."""
     views: int = 6
     """Number of depth views (the six axis views first)."""
     resolution: int = 256
@@ -79,7 +79,7 @@ class EnhanceConfig:
     its pilot's count). The shipped weights were fine-tuned on fixed twicing at 30 and are fed
     this."""
     presmooth_learned: bool = True
-    """The pre-smoothing is the selector's blend of twicings (`learned_twicing`, the
+    """The pre-smoothing is the selector's blend of twicings (`selector_presmoothed`, the
     `selector` weights; its candidates and pilot are fixed by those weights), in place of
     `presmooth_adaptive`'s choice; `presmooth_iterations` 0 still turns pre-smoothing off."""
     bounded_noise: BoundedNoiseConfig = field(default_factory=BoundedNoiseConfig)

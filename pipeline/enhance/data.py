@@ -61,7 +61,7 @@ class DataConfig:
     """Its count chosen per vertex (`adaptive_twicing`), as the enhance stage did before the
     selector."""
     presmooth_learned: bool = True
-    """The shipped selector's blend of twicings instead (`learned_twicing`), as the enhance
+    """The shipped selector's blend of twicings instead (`selector_presmoothed`), as the enhance
     stage does (`EnhanceConfig.presmooth_learned`). The shipped regressor was trained with it
     off (adaptive twicing); the LDM refining it was fine-tuned with it on."""
     presmooth_bounded: bool = True

@@ -257,14 +257,6 @@ def vertex_gains(model, features: NDArray[np.float32], device: str = "cpu"
     return by_row_chunks(model, features, device).astype(np.float64)
 
 
-def learned_twicing(mesh: TriangleMesh, selector: bytes, device: str | None = None
-                    ) -> TriangleMesh:
-    """The mesh as the selector's (safetensors bytes) per-vertex blend of its twicings, the
-    smoothing steps on `device` (`twicing_blend.twicing_candidates`; None: scipy): the
-    pre-smoothing with no refinement (`selector_presmoothed`)."""
-    return selector_presmoothed(mesh, selector, None, device)
-
-
 def selector_blend(model, candidates: TwicingCandidates, device: str = "cpu"
                    ) -> NDArray[np.float64]:
     """(V, 3) the candidates blended with a loaded `TwicingSelector`'s weights, run on
