@@ -25,11 +25,13 @@ def calibrate(
     """Writes OUT with world_from_depth per camera and the calibration's quality report."""
     from tqdm import tqdm
 
+    from app.cli.paths import output_file
     from pipeline.calibration import CalibrationConfig
     from pipeline.calibration import calibrate as run_calibration
     from pipeline.io.capture_io import open_capture
     from pipeline.io.rig_io import write_rig
 
+    output_file(out)
     config = CalibrationConfig(icp=icp, reference_camera=reference, seed=seed)
     with open_capture(capture) as reader, tqdm(total=100, desc="calibrate", unit="%") as bar:
         def advance(fraction: float) -> None:

@@ -119,12 +119,14 @@ def enhance_mesh_command(
     """Enhance a mesh: render depth views, enhance them, move vertices to the enhanced depth."""
     from tqdm import tqdm
 
+    from app.cli.paths import output_file
     from pipeline.enhance import EnhanceConfig, enhance_mesh
     from pipeline.enhance.config import skips_enhancement, validate_config
     from pipeline.enhance.noise_level import noise_to_edge_ratio
     from pipeline.enhance.weights import DEFAULT_FILES
     from pipeline.io.mesh_io import read_mesh, write_ply
 
+    output_file(out)
     loaded = None
     if weights is not None:
         if not weights.is_dir():

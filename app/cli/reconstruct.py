@@ -62,6 +62,7 @@ def reconstruct(
     """Runs the whole pipeline on one frame of CAPTURE and writes the mesh to OUT."""
     from tqdm import tqdm
 
+    from app.cli.paths import output_file
     from pipeline.io.capture_io import open_capture
     from pipeline.io.gltf_io import write_mesh
     from pipeline.reconstruct import check_capture, planned_stages, posed_cameras
@@ -70,6 +71,9 @@ def reconstruct(
 
     if out.suffix.lower() not in (".glb", ".ply"):
         raise ValueError(f"--out: {out} must end in .glb or .ply")
+    output_file(out)
+    if report is not None:
+        output_file(report, "--report")
     config = config_from_options({**_options(rig, frame, edge_length_mm), "enhance": enhance})
     truth = None
     if ground_truth is not None:
@@ -92,7 +96,6 @@ def reconstruct(
             mesh, figures = run_pipeline(reader, config, on_stage=on_stage)
             bar.update(1)
         cameras = posed_cameras(reader.meta, config)
-    out.parent.mkdir(parents=True, exist_ok=True)
     write_mesh(out, mesh)
     figures["output"] = {"path": str(out), "bytes": out.stat().st_size}
     if truth is not None:
@@ -100,7 +103,6 @@ def reconstruct(
 
         figures["accuracy"] = compare(mesh, truth, cameras, MetricsConfig())
     if report is not None:
-        report.parent.mkdir(parents=True, exist_ok=True)
         report.write_text(json.dumps(figures, indent=1))
     summary = (f"wrote {out} ({mesh.face_count} triangles, {out.stat().st_size} bytes, "
                f"{figures['total_seconds']:.1f} s)")

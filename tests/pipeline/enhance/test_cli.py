@@ -114,3 +114,22 @@ def test_a_fixed_gain_replaces_the_learned_gains_and_weights_folders_carry_gains
     # The CPU remeshes after the update by default; ahead is the GPU's default.
     assert not differ(learned, run("--remesh-after"))
     assert differ(learned, run("--remesh-ahead"))
+
+
+def test_an_output_in_a_missing_folder_is_written_and_a_folder_refused_before_the_work(
+        tmp_path):
+    from app.cli import app
+
+    src = tmp_path / "in.ply"
+    write_ply(src, sphere(0.5, 8))
+    nested = tmp_path / "new" / "folder" / "out.ply"
+    made = CliRunner().invoke(app, ["enhance-mesh", str(src), "--out", str(nested),
+                                    "--method", "taubin", "--iterations", "2"])
+    assert made.exit_code == 0, made.output
+    assert read_mesh(nested).face_count == sphere(0.5, 8).face_count
+    # A folder given as the output: refused before the (long) enhancement, not after it:
+    # before the input is even read.
+    missing = tmp_path / "missing.ply"
+    refused = CliRunner().invoke(app, ["enhance-mesh", str(missing), "--out", str(tmp_path)])
+    assert isinstance(refused.exception, ValueError)
+    assert "--out:" in str(refused.exception) and "is a directory" in str(refused.exception)

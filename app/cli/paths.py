@@ -1,0 +1,19 @@
+"""Output paths of the commands, checked before their work starts."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+def output_file(path: Path, option: str = "--out") -> Path:
+    """`path`, its folder made where it is missing, so that a long run does not end on a path
+    it cannot write; a ValueError naming `option` where it is a folder or its folder cannot be
+    made."""
+    if path.is_dir():
+        raise ValueError(f"{option}: {path} is a directory; give a file name")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ValueError(f"{option}: cannot make the folder {path.parent} ({exc.strerror})"
+                         ) from exc
+    return path

@@ -1,0 +1,19 @@
+from pathlib import Path
+
+import pytest
+
+from app.cli.paths import output_file
+
+
+def test_an_output_files_missing_folders_are_made(tmp_path: Path) -> None:
+    out = tmp_path / "a" / "b" / "mesh.ply"
+    assert output_file(out) == out
+    assert out.parent.is_dir() and not out.exists()
+
+
+def test_a_folder_or_an_unmakeable_folder_is_refused_naming_the_option(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match=r"^--report: .* is a directory"):
+        output_file(tmp_path, "--report")
+    (tmp_path / "file").write_text("")
+    with pytest.raises(ValueError, match=r"^--out: cannot make the folder .*file"):
+        output_file(tmp_path / "file" / "mesh.ply")
