@@ -17,3 +17,15 @@ def output_file(path: Path, option: str = "--out") -> Path:
         raise ValueError(f"{option}: cannot make the folder {path.parent} ({exc.strerror})"
                          ) from exc
     return path
+
+
+def output_folder(path: Path, option: str = "--out") -> Path:
+    """`path`, made with its parents where missing; a ValueError naming `option` where it is
+    a file or cannot be made."""
+    if path.exists() and not path.is_dir():
+        raise ValueError(f"{option}: {path} is a file; give a folder")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ValueError(f"{option}: cannot make the folder {path} ({exc.strerror})") from exc
+    return path

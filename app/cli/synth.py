@@ -50,6 +50,7 @@ def synth(
     import numpy as np
     from tqdm import tqdm
 
+    from app.cli.paths import output_folder
     from pipeline.io.capture_io import write_capture, zip_capture
     from pipeline.io.mesh_io import read_mesh, write_ply
     from pipeline.synth.scene import SynthConfig, sample_mesh, synthesize_stream, true_cameras
@@ -69,6 +70,7 @@ def synth(
             raise ValueError(f"--out: {out} holds no capture.json; --overwrite only replaces "
                              "a capture directory")
         shutil.rmtree(out)
+    output_folder(out.parent)
     if target is not None:
         _synth_target(out, target, frames, cameras, seed, not no_noise, zip_)
         return

@@ -76,6 +76,7 @@ def train(
     """Train the enhancement models from meshes (never the bunny: it is the test model)."""
     from tqdm import tqdm
 
+    from app.cli.paths import output_folder
     from app.cli.train_data import (
         gain_stage,
         network_weights,
@@ -90,7 +91,7 @@ def train(
     cfg = run_config(config, budget_scale, poses, mix, minutes, lr, loss_mask)
     wanted = wanted_stages(stages, init)
     dev = resolve_device(device)
-    (out / "checkpoints").mkdir(parents=True, exist_ok=True)
+    (output_folder(out) / "checkpoints").mkdir(exist_ok=True)
     report_path = out / "training.json"
     report = json.loads(report_path.read_text()) if resume and report_path.exists() else {}
     report.update({"config": asdict(cfg), "seed": seed, "device": dev.type})

@@ -27,6 +27,7 @@ def interpolate_weights(
     """Write END's weights with its regressor, VAE and LDM moved to `share` of the way from
     START's to END's, tensor by tensor (float16); END's other .safetensors (selector, vertex
     gains) are copied as they are."""
+    from app.cli.paths import output_folder
     from pipeline.enhance.inference import interpolated_weights
 
     for folder in (start, end):
@@ -36,6 +37,7 @@ def interpolate_weights(
                              f"{', '.join(missing)}.safetensors")
     if out.exists():
         raise ValueError(f"interpolate-weights: --out: {out} exists (give a new folder)")
+    output_folder(out.parent, "interpolate-weights: --out")
     interpolated = {}
     for name in DEPTH_NETWORKS:
         try:
@@ -45,7 +47,7 @@ def interpolate_weights(
         except Exception as exc:  # whatever a foreign file makes `weights_from_bytes` raise
             raise ValueError(f"interpolate-weights: {name}.safetensors of {start} and {end}: "
                              f"{exc}") from None
-    out.mkdir(parents=True)
+    out.mkdir()
     for name, data in interpolated.items():
         (out / f"{name}.safetensors").write_bytes(data)
     for path in sorted(end.glob("*.safetensors")):

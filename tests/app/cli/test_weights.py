@@ -51,3 +51,8 @@ def test_interpolate_weights_names_what_is_wrong_and_writes_nothing(tmp_path):
     assert not (tmp_path / "x").exists()
     taken = _cli("interpolate-weights", str(start), str(start), "--out", str(end))
     assert taken.returncode == 2 and "exists (give a new folder)" in taken.stderr
+    (tmp_path / "file").write_text("")
+    under_a_file = _cli("interpolate-weights", str(start), str(start), "--out",
+                        str(tmp_path / "file" / "x"))
+    assert under_a_file.returncode == 2
+    assert under_a_file.stderr.strip().splitlines()[-1].endswith("file is a file; give a folder")
