@@ -17,7 +17,8 @@ def enhance_mesh_command(
     mesh_in: Annotated[
         Path, typer.Argument(metavar="IN", help="Mesh to enhance (.ply, .obj, ...).")
     ],
-    out: Annotated[Path, typer.Option("--out", help="Output .ply.")],
+    out: Annotated[Path, typer.Option("--out", help="Output mesh: .glb (glTF binary, Draco) "
+                                      "or .ply.")],
     method: Annotated[
         str,
         typer.Option(
@@ -124,8 +125,11 @@ def enhance_mesh_command(
     from pipeline.enhance.config import skips_enhancement, validate_config
     from pipeline.enhance.noise_level import noise_to_edge_ratio
     from pipeline.enhance.weights import DEFAULT_FILES
-    from pipeline.io.mesh_io import read_mesh, write_ply
+    from pipeline.io.gltf_io import write_mesh
+    from pipeline.io.mesh_io import read_mesh
 
+    if out.suffix.lower() not in (".glb", ".ply"):
+        raise ValueError(f"--out: {out} must end in .glb or .ply")
     output_file(out)
     loaded = None
     if weights is not None:
@@ -173,4 +177,4 @@ def enhance_mesh_command(
             bar.refresh()
 
         result = enhance_mesh(mesh, config, progress)
-    write_ply(out, result)
+    write_mesh(out, result)

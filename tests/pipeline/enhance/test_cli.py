@@ -129,7 +129,26 @@ def test_an_output_in_a_missing_folder_is_written_and_a_folder_refused_before_th
     assert read_mesh(nested).face_count == sphere(0.5, 8).face_count
     # A folder given as the output: refused before the (long) enhancement, not after it:
     # before the input is even read.
-    missing = tmp_path / "missing.ply"
-    refused = CliRunner().invoke(app, ["enhance-mesh", str(missing), "--out", str(tmp_path)])
+    missing, taken = tmp_path / "missing.ply", tmp_path / "taken.ply"
+    taken.mkdir()
+    refused = CliRunner().invoke(app, ["enhance-mesh", str(missing), "--out", str(taken)])
     assert isinstance(refused.exception, ValueError)
     assert "--out:" in str(refused.exception) and "is a directory" in str(refused.exception)
+
+
+def test_the_output_is_written_by_its_suffix_and_others_refused_before_the_work(tmp_path):
+    from app.cli import app
+    from pipeline.io.gltf_read import decode_glb
+
+    src = tmp_path / "in.ply"
+    write_ply(src, sphere(0.5, 8))
+    glb = tmp_path / "out.glb"
+    result = CliRunner().invoke(app, ["enhance-mesh", str(src), "--out", str(glb),
+                                      "--method", "taubin", "--iterations", "2"])
+    assert result.exit_code == 0, result.output
+    assert glb.read_bytes()[:4] == b"glTF"
+    assert decode_glb(glb.read_bytes()).face_count == sphere(0.5, 8).face_count
+    refused = CliRunner().invoke(app, ["enhance-mesh", str(tmp_path / "missing.ply"),
+                                       "--out", str(tmp_path / "out.obj")])
+    assert isinstance(refused.exception, ValueError)
+    assert str(refused.exception) == f"--out: {tmp_path / 'out.obj'} must end in .glb or .ply"
