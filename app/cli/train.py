@@ -90,6 +90,8 @@ def train(
 
     cfg = run_config(config, budget_scale, poses, mix, minutes, lr, loss_mask)
     wanted = wanted_stages(stages, init)
+    if not meshes.is_dir():  # an empty folder is fine: procedural shapes alone
+        raise ValueError(f"--meshes: {meshes} is not a folder")
     dev = resolve_device(device)
     (output_folder(out) / "checkpoints").mkdir(exist_ok=True)
     report_path = out / "training.json"

@@ -72,6 +72,17 @@ def test_ldm_stages_without_a_regressor_are_refused_by_name(tmp_path):
     assert "refines the regressor" in str(result.exception)
 
 
+def test_a_meshes_folder_that_is_not_there_is_refused_before_any_work(tmp_path):
+    from app.cli import app
+
+    missing = tmp_path / "no-such-folder"
+    result = CliRunner().invoke(app, ["train", "--out", str(tmp_path / "out"), "--config",
+                                      "tiny", "--meshes", str(missing)])
+    assert isinstance(result.exception, ValueError)
+    assert str(result.exception) == f"--meshes: {missing} is not a folder"
+    assert not (tmp_path / "out").exists()
+
+
 def test_train_init_fine_tunes_given_weights_and_rejects_a_folder_without_them(tmp_path):
     from app.cli import app
     from pipeline.enhance.inference import weights_from_bytes
