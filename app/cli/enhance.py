@@ -118,6 +118,8 @@ def enhance_mesh_command(
     ] = None,
 ) -> None:
     """Enhance a mesh: render depth views, enhance them, move vertices to the enhanced depth."""
+    import time
+
     from tqdm import tqdm
 
     from app.cli.paths import output_file
@@ -170,6 +172,7 @@ def enhance_mesh_command(
             f"edge length, is below --min-noise-ratio {min_noise_ratio}: written unchanged",
             err=True,
         )
+    started = time.perf_counter()
     with tqdm(total=100, desc="enhance", unit="%") as bar:
 
         def progress(fraction: float) -> None:
@@ -178,3 +181,5 @@ def enhance_mesh_command(
 
         result = enhance_mesh(mesh, config, progress)
     write_mesh(out, result)
+    typer.echo(f"wrote {out} ({result.vertex_count} vertices, {result.face_count} triangles, "
+               f"{out.stat().st_size} bytes; {method}, {time.perf_counter() - started:.1f} s)")

@@ -147,6 +147,7 @@ def test_the_output_is_written_by_its_suffix_and_others_refused_before_the_work(
                                       "--method", "taubin", "--iterations", "2"])
     assert result.exit_code == 0, result.output
     assert glb.read_bytes()[:4] == b"glTF"
+    assert f"wrote {glb} (" in result.output and "taubin" in result.output
     assert decode_glb(glb.read_bytes()).face_count == sphere(0.5, 8).face_count
     refused = CliRunner().invoke(app, ["enhance-mesh", str(tmp_path / "missing.ply"),
                                        "--out", str(tmp_path / "out.obj")])
