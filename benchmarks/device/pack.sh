@@ -32,6 +32,6 @@ apt-get $o update -qq
 (cd .gl && apt-get $o download -qq libegl1 libglvnd0 libopengl0 libgl1 libglx0 libgles2 \
   libx11-6 libx11-data libxcb1 libxau6 libxdmcp6 libbsd0 libmd0 libudev1 libusb-1.0-0 \
   libidn2-0 libunistring2)
-cp ../shared/data/meshes/{stanford-bunny,beetle}.obj .meshes/
+cp ../shared/data/meshes/*.obj .meshes/  # every mesh: train.sh reads them all
 rm -rf "$work"
 du -sh .devpkgs .gl .meshes

@@ -1,0 +1,39 @@
+#!/usr/bin/env bash
+# On the device machine (carry .devpkgs .gl .meshes; see pack.sh, which copies every mesh in
+# shared/, the bunny too, though training never reads it): fine-tunes the shipped networks
+# with the large config's batch and poses, the twenty-third session's recipe (regressor,
+# end-to-end finetune and vertex gains from the shipped weights, the mesh mix, loss mask
+# 0.02), on CUDA, and copies the weights, training.json and MODEL_CARD.md to $OUT/train (the
+# checkpoints stay there: too large to come back). Then, here: `benchmarks/enhance_meshes.py
+# --mesh spot --mesh fandisk --weights DIR` decides, as earlier sessions did (README,
+# "Train and measure").
+#
+# Sized to one device call (10 minutes at most): SCALE multiplies every stage's steps and
+# MINUTES caps each network stage. Not yet run on a device (twenty-fifth session, none lent):
+# the twentieth session's H100 took 2 minutes for the large config's pairs with 14 workers
+# and 3.0 / 5.8 minutes for its regressor / finetune stages at SCALE 1, so SCALE 0.4 should
+# leave time for the gains and the validation. Here, `LOCAL=1 CONFIG=small SCALE=0.002
+# POSES=1 PROCEDURAL=1 WORKERS=2 DEVICE=cpu` checks the command line in a few minutes.
+set -uo pipefail
+if [ -z "${LOCAL:-}" ]; then
+  source "$(dirname "$0")/setup.sh"
+  export PYTHONPATH="/tmp/site:$(pwd)"
+  python=python3
+else
+  python=.venv/bin/python
+fi
+out=${OUT:-.}
+work=$(mktemp -d)
+poses=()
+[ -n "${POSES:-}" ] && poses=(--poses "$POSES")
+$python -c "from app.cli import main; main()" train --config "${CONFIG:-large}" \
+  --init pipeline/enhance/weights --stages regressor,finetune,gain --mix mesh \
+  --loss-mask 0.02 --lr 2e-4 --procedural "${PROCEDURAL:-12}" --workers "${WORKERS:-14}" \
+  --seed "${SEED:-61}" --budget-scale "${SCALE:-0.4}" --minutes "${MINUTES:-2.5}" \
+  "${poses[@]}" --meshes "${MESHES:-.meshes}" --device "${DEVICE:-cuda}" --out "$work" \
+  2>&1 | tr '\r' '\n' | grep -v '^\s*$' | tail -60
+status=${PIPESTATUS[0]}
+mkdir -p "$out/train"
+cp "$work"/*.safetensors "$work"/training.json "$work"/MODEL_CARD.md "$out/train/" 2>/dev/null
+ls -l "$out/train"
+exit "$status"
