@@ -25,6 +25,7 @@ from pipeline.mesh_repair import (
     edge_table,
     faces_at,
     faces_per_edge,
+    grown_by_rings,
     row_max,
     row_min,
     triangle_angles_deg,
@@ -277,13 +278,10 @@ def _patch(faces: Faces, seed_faces: NDArray[np.bool_], vertex_count: int, rings
     """The faces near the (F,) `seed_faces`: (P,) the vertices they use, ascending, (R,) the
     faces, ascending, and (P,) which of the vertices are complete (within `rings` rings of a
     seed's corner, so every face of the mesh at them is in the patch)."""
-    # Index columns converted once: a gather converts int32 indices on every call.
-    columns = [faces[:, c].astype(np.intp) for c in range(3)]
-    near = np.zeros(vertex_count, dtype=bool)
-    near[faces[seed_faces].ravel()] = True
-    for _ in range(rings):
-        near[faces[near[columns[0]] | near[columns[1]] | near[columns[2]]].ravel()] = True
-    rows = np.flatnonzero(near[columns[0]] | near[columns[1]] | near[columns[2]])
+    seeds = np.zeros(vertex_count, dtype=bool)
+    seeds[faces[seed_faces].ravel()] = True
+    near, at_near = grown_by_rings(faces, seeds, rings)
+    rows = np.flatnonzero(at_near)
     used = np.zeros(vertex_count, dtype=bool)
     used[faces[rows].ravel()] = True
     vertices = np.flatnonzero(used)

@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.mesh_repair import edge_table, faces_at, faces_per_edge
+from pipeline.mesh_repair import edge_table, faces_per_edge, grown_by_rings
 
 FloatArray = NDArray[np.float64]
 Faces = NDArray[np.int32]
@@ -84,9 +84,7 @@ def _faces_near(faces: Faces, seed_edges: NDArray[np.int64], vertex_count: int, 
     """(F,) the faces within `rings` rings of faces around the ends of `seed_edges`."""
     near_vertex = np.zeros(vertex_count, dtype=bool)
     near_vertex[seed_edges.ravel()] = True
-    for _ in range(rings):
-        near_vertex[faces[faces_at(faces, near_vertex)].ravel()] = True
-    return faces_at(faces, near_vertex)
+    return grown_by_rings(faces, near_vertex, rings)[1]
 
 
 def _split_in_region(v: FloatArray, f: Faces, region: NDArray[np.int64],

@@ -97,6 +97,19 @@ def faces_at(faces: Faces, at_vertex: NDArray[np.bool_]) -> NDArray[np.bool_]:
     return at_vertex[faces[:, 0]] | at_vertex[faces[:, 1]] | at_vertex[faces[:, 2]]
 
 
+def grown_by_rings(faces: Faces, at_vertex: NDArray[np.bool_], rings: int
+                   ) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+    """(V,) `at_vertex` grown by `rings` rings of faces (each ring adds the corners of every
+    face with a corner in it), and (F,) the faces with a corner in the grown set. The index
+    columns are converted to numpy's index type once: a gather converts int32 indices on every
+    call (a ring of the bunny's 211 k faces 1.5 -> 0.6 ms)."""
+    columns = [faces[:, c].astype(np.intp) for c in range(3)]
+    near = at_vertex.copy()
+    for _ in range(rings):
+        near[faces[near[columns[0]] | near[columns[1]] | near[columns[2]]].ravel()] = True
+    return near, near[columns[0]] | near[columns[1]] | near[columns[2]]
+
+
 def faces_per_edge(opposite: NDArray[np.int64], edge_count: int) -> NDArray[np.int64]:
     """(E,) how many faces use each edge, from `edge_table`'s (F, 3) opposite-edge table:
     1 on the boundary, 2 inside, more where the mesh is non-manifold."""

@@ -11,7 +11,9 @@ from pipeline.mesh_repair import (
     drop_small_components,
     edge_table,
     face_areas,
+    faces_at,
     faces_per_edge,
+    grown_by_rings,
     non_manifold_vertices,
     repair,
     stable_sort,
@@ -158,3 +160,20 @@ def test_triangle_angles_are_the_gathered_corners_angles(seed: int, vertices: in
     assert np.array_equal(triangle_angles_deg(v, f), expected)
     whole = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])
     np.testing.assert_allclose(expected[whole].sum(axis=1), 180.0, atol=1e-4)
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), rings=st.integers(0, 4), share=st.floats(0.0, 0.05))
+def test_growing_by_rings_adds_each_rings_faces_corners(seed: int, rings: int,
+                                                        share: float) -> None:
+    sphere = trimesh.creation.icosphere(subdivisions=3)
+    faces = np.asarray(sphere.faces, dtype=np.int32)
+    rng = np.random.default_rng(seed)
+    seeds = rng.uniform(size=len(sphere.vertices)) < share
+    near, at_near = grown_by_rings(faces, seeds, rings)
+    expected = seeds.copy()
+    for _ in range(rings):  # a ring: every corner of every face that touches the set
+        expected[faces[expected[faces].any(axis=1)].ravel()] = True
+    assert np.array_equal(near, expected)
+    assert np.array_equal(at_near, faces_at(faces, expected))
+    assert not np.shares_memory(near, seeds) and np.array_equal(seeds[seeds], near[seeds])
