@@ -130,9 +130,7 @@ def enhance_mesh_command(
     from pipeline.io.gltf_io import write_mesh
     from pipeline.io.mesh_io import read_mesh
 
-    if out.suffix.lower() not in (".glb", ".ply"):
-        raise ValueError(f"--out: {out} must end in .glb or .ply")
-    output_file(out)
+    output_file(out, suffixes=(".glb", ".ply"))
     loaded = None
     if weights is not None:
         if not weights.is_dir():

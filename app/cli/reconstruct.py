@@ -69,9 +69,7 @@ def reconstruct(
     from pipeline.reconstruct import reconstruct as run_pipeline
     from pipeline.reconstruct_config import config_from_options
 
-    if out.suffix.lower() not in (".glb", ".ply"):
-        raise ValueError(f"--out: {out} must end in .glb or .ply")
-    output_file(out)
+    output_file(out, suffixes=(".glb", ".ply"))
     if report is not None:
         output_file(report, "--report")
     config = config_from_options({**_options(rig, frame, edge_length_mm), "enhance": enhance})

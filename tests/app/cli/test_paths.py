@@ -28,3 +28,9 @@ def test_an_output_folder_is_made_and_a_file_in_its_place_refused(tmp_path: Path
         output_folder(tmp_path / "file")
     with pytest.raises(ValueError, match=r"^--out: cannot make the folder .*file.*x"):
         output_folder(tmp_path / "file" / "x")
+
+
+def test_an_output_file_without_a_wanted_suffix_is_refused(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match=r"^--out: .*mesh.obj must end in .glb or .ply$"):
+        output_file(tmp_path / "mesh.obj", suffixes=(".glb", ".ply"))
+    assert output_file(tmp_path / "mesh.GLB", suffixes=(".glb", ".ply")).name == "mesh.GLB"
