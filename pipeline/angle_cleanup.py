@@ -291,7 +291,10 @@ def _patch(faces: Faces, seed_faces: NDArray[np.bool_], vertex_count: int, rings
 def _reaches_rim(faces: Faces, angles_deg: FloatArray, min_angle_deg: float,
                  max_angle_deg: float, complete: NDArray[np.bool_] | None) -> bool:
     """Whether a face outside the criteria, which the next operation may take, has a corner
-    not `complete`: there the patch's tables would not say what the mesh's say."""
+    not `complete`: there the patch's tables would not say what the mesh's say. This holds
+    the patch to the whole mesh's result as long as every operation takes only faces
+    outside the criteria and reads only the faces at their corners (the faces across their
+    edges among them); an operation that reads further would need more rings checked."""
     if complete is None:
         return False
     return not complete[faces[_outside(angles_deg, min_angle_deg, max_angle_deg)]].all()
