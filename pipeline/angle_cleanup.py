@@ -29,6 +29,7 @@ from pipeline.mesh_repair import (
     row_max,
     row_min,
     triangle_angles_deg,
+    without_rows,
 )
 
 FloatArray = NDArray[np.float64]
@@ -359,13 +360,13 @@ def enforce_angles(vertices_m: FloatArray, faces: Faces, angles_deg: FloatArray,
     patch_vertices_m, patch_faces, patch_angles, kept_rows, stats = done
     out_v = vertices_m.copy()
     out_v[vertices] = patch_vertices_m
-    kept = np.ones(len(faces), dtype=bool)
-    kept[rows] = False
-    kept[rows[kept_rows]] = True
-    # Where each kept row lands once the others are gone.
-    out_row = np.cumsum(kept) - 1
-    out_f, out_angles = faces[kept], angles_deg[kept]
-    out_f[out_row[rows[kept_rows]]] = vertices[patch_faces]
-    out_angles[out_row[rows[kept_rows]]] = patch_angles
+    kept = np.zeros(len(rows), dtype=bool)
+    kept[kept_rows] = True
+    dropped, kept_at = rows[~kept], rows[kept_rows]
+    out_f, out_angles = without_rows(faces, dropped), without_rows(angles_deg, dropped)
+    # Where each kept row lands once the dropped ones are gone.
+    out_row = kept_at - np.searchsorted(dropped, kept_at)
+    out_f[out_row] = vertices[patch_faces]
+    out_angles[out_row] = patch_angles
     out_v, out_f = compact(out_v, out_f)
     return out_v, out_f, out_angles, stats

@@ -34,17 +34,48 @@ class TriangleMesh:
         return replace(self, vertices_m=vertices_m, vertex_normals=None)
 
 
+FACE_BLOCK_FACES = 8192
+"""Faces the per-face geometry (`face_cross_m2`, `mesh_repair.face_areas`,
+`mesh_repair.triangle_angles_deg`) takes at a time: its temporaries then stay in the cache
+rather than each going out to memory, with the same bits (on the bunny's light remesh, 211 k
+faces, 2 cores: the angles 30-35 -> 16-18 ms, the areas 37-39 -> 13-15 ms)."""
+
+
+def face_blocks(face_count: int) -> list[slice]:
+    """`face_count` faces cut into runs of `FACE_BLOCK_FACES`."""
+    return [slice(start, start + FACE_BLOCK_FACES)
+            for start in range(0, face_count, FACE_BLOCK_FACES)]
+
+
+def coordinate_columns(vertices_m: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(3, V) the x, y and z of (V, 3) `vertices_m`, each contiguous: gathers from a column
+    are a third quicker than gathers of rows."""
+    return np.ascontiguousarray(np.asarray(vertices_m, np.float64).T)
+
+
+def face_cross_columns_m2(columns: NDArray[np.float64], faces: NDArray[np.integer]
+                          ) -> tuple[NDArray[np.float64], ...]:
+    """The x, y and z, each (F,), of each of `faces`' (b - a) x (c - a), from the vertices'
+    `coordinate_columns`."""
+    index = faces.T.astype(np.intp)
+    x, y, z = columns
+    x0, y0, z0 = x.take(index[0]), y.take(index[0]), z.take(index[0])
+    ax, ay, az = x.take(index[1]) - x0, y.take(index[1]) - y0, z.take(index[1]) - z0
+    bx, by, bz = x.take(index[2]) - x0, y.take(index[2]) - y0, z.take(index[2]) - z0
+    return ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+
+
 def face_cross_m2(vertices_m: NDArray[np.float64], faces: NDArray[np.int32]
                   ) -> NDArray[np.float64]:
     """(F, 3) each face's (b - a) x (c - a), twice its area along its normal, square metres:
     written out on the coordinates' columns, three to four times as fast as ``np.cross`` on
-    gathered (F, 3, 3) corners, with the same bits."""
-    x, y, z = np.ascontiguousarray(np.asarray(vertices_m, np.float64).T)
-    f0, f1, f2 = faces[:, 0], faces[:, 1], faces[:, 2]
-    x0, y0, z0 = x[f0], y[f0], z[f0]
-    ax, ay, az = x[f1] - x0, y[f1] - y0, z[f1] - z0
-    bx, by, bz = x[f2] - x0, y[f2] - y0, z[f2] - z0
-    return np.column_stack([ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx])
+    gathered (F, 3, 3) corners, with the same bits; by `face_blocks`."""
+    columns = coordinate_columns(vertices_m)
+    cross = np.empty((len(faces), 3))
+    for block in face_blocks(len(faces)):
+        for k, component in enumerate(face_cross_columns_m2(columns, faces[block])):
+            cross[block, k] = component
+    return cross
 
 
 def face_normals(vertices_m: NDArray[np.float64], faces: NDArray[np.int32]) -> NDArray[np.float64]:

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.mesh import face_cross_m2
+from pipeline.mesh import coordinate_columns, face_blocks, face_cross_columns_m2
 
 FloatArray = NDArray[np.float64]
 Faces = NDArray[np.int32]
@@ -16,21 +16,35 @@ Faces = NDArray[np.int32]
 def triangle_angles_deg(vertices_m: FloatArray, faces: Faces) -> FloatArray:
     """(F, 3) interior angle at each corner of each face, degrees (0 for degenerate). On the
     coordinates' columns, as `face_areas` (a third quicker than on gathered (F, 3, 3)
-    corners, with the same bits)."""
-    columns = np.ascontiguousarray(np.asarray(vertices_m, np.float64).T)
-    corner = [[axis[faces[:, c]] for axis in columns] for c in range(3)]
+    corners, with the same bits), by `mesh.face_blocks`."""
+    columns = coordinate_columns(vertices_m)
+    angles = np.empty(faces.shape, dtype=np.float64)
+    for block in face_blocks(len(faces)):
+        _block_angles_deg(columns, faces[block], angles[block])
+    return angles
+
+
+def _block_angles_deg(columns: FloatArray, faces: Faces, out_deg: FloatArray) -> None:
+    """`triangle_angles_deg` of (B, 3) `faces` on (3, V) coordinate `columns`, into (B, 3)
+    `out_deg`."""
+    index = faces.T.astype(np.intp)
+    corner = [[axis.take(index[c]) for axis in columns] for c in range(3)]
     # side[c] runs from corner c to corner c + 1; corner c sits between side[c] and the
     # reversed side[c - 1], so each side's length is taken once, not twice.
     side = [[corner[(c + 1) % 3][k] - corner[c][k] for k in range(3)] for c in range(3)]
     length = [np.sqrt(x * x + y * y + z * z) for x, y, z in side]
-    angles = np.zeros(faces.shape, dtype=np.float64)
     for c in range(3):
         (x, y, z), (u, v, w) = side[c], side[c - 1]
         denom = length[c] * length[c - 1]
-        cos = np.divide(-(x * u + y * v + z * w), denom, out=np.ones(len(faces)),
-                        where=denom > 0)
-        angles[:, c] = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
-    return angles
+        cos = x * u
+        cos += y * v
+        cos += z * w
+        np.negative(cos, out=cos)
+        positive = denom > 0
+        np.divide(cos, denom, out=cos, where=positive)
+        cos[~positive] = 1.0
+        np.clip(cos, -1.0, 1.0, out=cos)
+        out_deg[:, c] = np.degrees(np.arccos(cos, out=cos), out=cos)
 
 
 DEGENERATE_AREA_M2 = 1e-14
@@ -69,10 +83,13 @@ def stable_argsort(keys: NDArray[np.integer]) -> NDArray[np.int64]:
 
 
 def face_areas(vertices_m: FloatArray, faces: Faces) -> FloatArray:
-    """(F,) triangle areas, square metres."""
-    cross = face_cross_m2(vertices_m, faces)
-    return 0.5 * np.sqrt(cross[:, 0] * cross[:, 0] + cross[:, 1] * cross[:, 1]
-                         + cross[:, 2] * cross[:, 2])
+    """(F,) triangle areas, square metres; by `mesh.face_blocks`."""
+    columns = coordinate_columns(vertices_m)
+    areas = np.empty(len(faces))
+    for block in face_blocks(len(faces)):
+        x, y, z = face_cross_columns_m2(columns, faces[block])
+        areas[block] = 0.5 * np.sqrt(x * x + y * y + z * z)
+    return areas
 
 
 def edge_table(faces: Faces) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
@@ -128,8 +145,25 @@ def used_vertices(faces: NDArray[np.integer], vertex_count: int
     ``np.unique(faces, return_inverse=True)`` by marking the used vertices, with no sort."""
     used = np.zeros(vertex_count, dtype=bool)
     used[faces.ravel()] = True
-    new_index = np.cumsum(used) - 1
-    return np.flatnonzero(used), new_index[faces].astype(np.int32)
+    # int32 from the start: the faces gather it as they are (no int64 copy to convert).
+    new_index = np.cumsum(used, dtype=np.int32) - 1
+    return np.flatnonzero(used), new_index[faces]
+
+
+RUN_COPY_MAX_DROPPED = 256
+"""`without_rows` copies the runs between at most this many dropped rows; past it, a mask."""
+
+
+def without_rows(array: NDArray, dropped: NDArray[np.int64]) -> NDArray:
+    """`array` less its rows `dropped` (ascending, distinct). The few rows a clean-up drops
+    are cut out by copying the runs between them: on the bunny's 211 k faces 0.3 ms, where a
+    mask of every row takes 3 ms."""
+    if len(dropped) > RUN_COPY_MAX_DROPPED:
+        keep = np.ones(len(array), dtype=bool)
+        keep[dropped] = False
+        return array[keep]
+    starts, stops = [0, *(dropped + 1).tolist()], [*dropped.tolist(), len(array)]
+    return np.concatenate([array[a:b] for a, b in zip(starts, stops, strict=True)])
 
 
 def faces_sharing_vertices(faces: Faces, vertex_count: int):

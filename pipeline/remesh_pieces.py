@@ -89,9 +89,17 @@ def stitched_sources(vertex_count: int, pieces: list[Piece],
     (V', 3) weights, from each piece's kernel `sources` (ids into the piece's vertices,
     weights, and how many vertices it held) and `stitched`'s `rows`. An input vertex is
     itself, weight 1."""
-    ids = [np.repeat(np.arange(vertex_count, dtype=np.int64)[:, None], 3, axis=1)]
-    weights = [np.tile([1.0, 0.0, 0.0], (vertex_count, 1))]
+    ids, weights = [], []
     for piece, (piece_ids, piece_weights, held_count) in zip(pieces, sources, strict=True):
         ids.append(piece.vertex_ids[piece_ids[held_count:]])
         weights.append(piece_weights[held_count:])
-    return np.concatenate(ids)[rows], np.concatenate(weights)[rows]
+    # `rows` ascends, so the input's vertices come first.
+    inputs = int(np.searchsorted(rows, vertex_count))
+    out_ids = np.empty((len(rows), 3), dtype=np.int64)
+    out_weights = np.zeros((len(rows), 3))
+    out_ids[:inputs] = rows[:inputs, None]
+    out_weights[:inputs, 0] = 1.0
+    new_rows = rows[inputs:] - vertex_count
+    out_ids[inputs:] = np.concatenate(ids)[new_rows]
+    out_weights[inputs:] = np.concatenate(weights)[new_rows]
+    return out_ids, out_weights

@@ -6,6 +6,7 @@ import trimesh
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from pipeline.mesh import FACE_BLOCK_FACES
 from pipeline.mesh_repair import (
     _first_of_each_corner_set,
     drop_small_components,
@@ -131,23 +132,28 @@ def test_stable_sort_is_numpys_stable_argsort(keys: list[int], span: int) -> Non
     assert np.array_equal(sorted_keys, values[expected])
 
 
-def test_face_areas_are_half_the_cross_products_norm() -> None:
+@pytest.mark.parametrize("faces", [0, 100, 2 * FACE_BLOCK_FACES + 37])
+def test_face_areas_are_half_the_cross_products_norm(faces: int) -> None:
+    """The same bits by blocks of faces as numpy's cross product and norm on the whole."""
     rng = np.random.default_rng(3)
     v = rng.normal(size=(40, 3))
-    f = rng.integers(0, 40, (100, 3)).astype(np.int32)
+    f = rng.integers(0, 40, (faces, 3)).astype(np.int32)
     tri = v[f]
     expected = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
     assert np.array_equal(face_areas(v, f), expected)
 
 
 @settings(max_examples=20, deadline=None)
-@given(seed=st.integers(0, 2**31 - 1), vertices=st.integers(3, 40))
-def test_triangle_angles_are_the_gathered_corners_angles(seed: int, vertices: int) -> None:
-    """The columns' form gives the bits of the plain form on gathered corners, degenerate
-    faces (a repeated corner: 0 for each angle at a zero-length side) included."""
+@given(seed=st.integers(0, 2**31 - 1), vertices=st.integers(3, 40),
+       faces=st.sampled_from([0, 1, 200, FACE_BLOCK_FACES, 2 * FACE_BLOCK_FACES + 37]))
+def test_triangle_angles_are_the_gathered_corners_angles(seed: int, vertices: int,
+                                                         faces: int) -> None:
+    """The columns' form, by blocks of faces, gives the bits of the plain form on gathered
+    corners, degenerate faces (a repeated corner: 0 for each angle at a zero-length side)
+    included."""
     rng = np.random.default_rng(seed)
     v = rng.normal(size=(vertices, 3))
-    f = rng.integers(0, vertices, (200, 3)).astype(np.int32)
+    f = rng.integers(0, vertices, (faces, 3)).astype(np.int32)
     tri = v[f]
     side = [tri[:, (c + 1) % 3] - tri[:, c] for c in range(3)]
     length = [np.linalg.norm(s, axis=1) for s in side]
