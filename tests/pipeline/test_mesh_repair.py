@@ -19,6 +19,7 @@ from pipeline.mesh_repair import (
     repair,
     stable_sort,
     triangle_angles_deg,
+    without_rows,
 )
 
 
@@ -183,3 +184,17 @@ def test_growing_by_rings_adds_each_rings_faces_corners(seed: int, rings: int,
     assert np.array_equal(near, expected)
     assert np.array_equal(at_near, faces_at(faces, expected))
     assert not np.shares_memory(near, seeds) and np.array_equal(seeds[seeds], near[seeds])
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), rows=st.integers(0, 700),
+       share=st.sampled_from([0.0, 0.01, 0.5, 1.0]))
+def test_without_rows_is_a_mask_of_the_rows_kept(seed: int, rows: int, share: float) -> None:
+    """Runs copied (few rows dropped) or a mask (more than `RUN_COPY_MAX_DROPPED`): the rows
+    kept, in order."""
+    rng = np.random.default_rng(seed)
+    array = rng.normal(size=(rows, 3))
+    dropped = np.flatnonzero(rng.random(rows) < share)
+    keep = np.ones(rows, dtype=bool)
+    keep[dropped] = False
+    assert np.array_equal(without_rows(array, dropped), array[keep])
