@@ -44,6 +44,7 @@ from pipeline.enhance.config import (  # noqa: E402
 )
 from pipeline.enhance.data import DataConfig, noisy_along_normals  # noqa: E402
 from pipeline.enhance.metrics import c2m_summary, normal_error_deg  # noqa: E402
+from pipeline.enhance.networks import load_networks  # noqa: E402
 from pipeline.enhance.normal_filter import NormalFilterConfig, normal_filter  # noqa: E402
 from pipeline.mesh import TriangleMesh  # noqa: E402
 from pipeline.remesh_ahead import finish_remesh_ahead, start_remesh_ahead  # noqa: E402
@@ -330,7 +331,10 @@ def perf_child(args) -> None:
     stage (`STAGE_PROGRESS`), the light remesh's wait for its kernel and peak RSS. A warm-up
     call runs first: at 32² (`--warm-up small`: imports and first-call costs, not the
     shapes of the timed call), or the timed call itself (`--warm-up full`: a worker's second
-    mesh, the accelerator's kernels for these shapes chosen already)."""
+    mesh, the accelerator's kernels for these shapes chosen already). With `--networks kept`
+    the networks are loaded before the warm-up and both calls are given them
+    (`networks.load_networks`), as a worker keeps them between jobs; `loaded`: each call
+    loads its own."""
     truth, noisy = bunny_protocol(Path(args.meshes), args.seed, 1e-3 * args.edge_mm,
                                   name=args.mesh)
     weights = _weights(args.weights)
@@ -339,7 +343,9 @@ def perf_child(args) -> None:
         remesh_iterations=args.remesh_iterations, device=args.device, weights=weights,
         remesh_ahead={"auto": None, "ahead": True, "after": False}[args.remesh],
     )
-    enhance_mesh(noisy, cfg if args.warm_up == "full" else replace(cfg, resolution=32))
+    networks = load_networks(cfg) if args.networks == "kept" else None
+    enhance_mesh(noisy, cfg if args.warm_up == "full" else replace(cfg, resolution=32),
+                 networks=networks)
     remesh_stats: dict = {}
     _recording_remesh_stats(remesh_stats)
     base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
@@ -348,7 +354,8 @@ def perf_child(args) -> None:
     profiler = cProfile.Profile() if args.profile else None
     if profiler:
         profiler.enable()
-    enhance_mesh(noisy, cfg, lambda share: ends.append((stage_of[share], time.perf_counter())))
+    enhance_mesh(noisy, cfg, lambda share: ends.append((stage_of[share], time.perf_counter())),
+                 networks)
     if profiler:
         profiler.disable()
         with open(args.profile, "w") as f:
@@ -360,6 +367,7 @@ def perf_child(args) -> None:
     print(json.dumps({
         "seconds": ends[-1][1] - ends[0][1], "stage_seconds": stages, "device": args.device,
         "remesh_iterations": args.remesh_iterations, "warm_up": args.warm_up,
+        "networks": args.networks,
         "remesh_call_seconds": remesh_stats.get("seconds"),
         "kernel_wait_seconds": remesh_stats.get("kernel_wait_s"),
         "angle_cleanup": remesh_stats.get("angle_cleanup"),
@@ -408,6 +416,9 @@ def main() -> None:
                     "(`remesh_ahead`), after it, or as the device's default")
     ap.add_argument("--warm-up", choices=["small", "full"], default="small",
                     help="with --perf-child: the warm-up call at 32² or as the timed call")
+    ap.add_argument("--networks", choices=["loaded", "kept"], default="loaded",
+                    help="with --perf-child: each call loads its networks, or they are loaded "
+                    "once and kept, as a worker keeps them between jobs")
     ap.add_argument("--edge-mm", type=float, default=5.0,
                     help="the protocol's edge length, mm (finer: a larger mesh, for timings)")
     ap.add_argument("--steps", type=int, default=4, help=argparse.SUPPRESS)

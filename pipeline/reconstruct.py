@@ -26,7 +26,7 @@ import json
 import resource
 import time
 from collections.abc import Callable, Mapping
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -43,6 +43,9 @@ from pipeline.reconstruct_config import ReconstructConfig, config_hash
 from pipeline.registration import ray_image, register_view
 from pipeline.remesh import remesh
 from pipeline.voxel_refine import refine_mask
+
+if TYPE_CHECKING:
+    from pipeline.enhance.networks import EnhanceNetworks
 
 Progress = Callable[[float], None]
 Artifacts = dict[str, NDArray[Any]]
@@ -254,13 +257,14 @@ def _stage_remesh(capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],
 
 
 def _stage_enhance(capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],
-                   config: ReconstructConfig, progress: Progress | None) -> Artifacts:
+                   config: ReconstructConfig, progress: Progress | None,
+                   networks: EnhanceNetworks | None = None) -> Artifacts:
     from pipeline.enhance import enhance_mesh
     from pipeline.enhance.config import skips_enhancement
     from pipeline.enhance.noise_level import noise_to_edge_ratio
 
     mesh = mesh_from_artifacts(inputs)
-    out = enhance_mesh(mesh, config.enhancement, progress)
+    out = enhance_mesh(mesh, config.enhancement, progress, networks)
     # The light remesh renumbers vertices: how far the surface moved is measured against
     # the surface before, not vertex by vertex.
     offset_m = np.abs(signed_distances_m(out.vertices_m, mesh))
@@ -301,10 +305,15 @@ _STAGE_FUNCTIONS = {"filter": _stage_filter, "align": _stage_align,
 
 
 def run_stage(name: str, capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],
-              config: ReconstructConfig, progress: Progress | None = None) -> Artifacts:
-    """Run one stage on the merged artifacts of the stages before it; returns its artifacts."""
+              config: ReconstructConfig, progress: Progress | None = None,
+              networks: EnhanceNetworks | None = None) -> Artifacts:
+    """Run one stage on the merged artifacts of the stages before it; returns its artifacts.
+    `networks`: the enhance stage's, loaded beforehand and kept between jobs
+    (`pipeline.enhance.networks`; None: the stage loads them)."""
     if name not in _STAGE_FUNCTIONS:
         raise ValueError(f"stage: unknown stage {name!r} (stages: {', '.join(STAGES)})")
+    if name == ENHANCE_STAGE:
+        return _stage_enhance(capture, inputs, config, progress, networks)
     return _STAGE_FUNCTIONS[name](capture, inputs, config, progress)
 
 

@@ -23,7 +23,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -32,6 +32,10 @@ from workers.db import init_db, make_engine, make_sessionmaker
 from workers.jobstore import JobStore, JobView
 from workers.settings import Settings
 from workers.storage import Storage, make_storage
+
+if TYPE_CHECKING:
+    from pipeline.enhance.config import EnhanceConfig
+    from pipeline.enhance.networks import EnhanceNetworks
 
 log = logging.getLogger(__name__)
 
@@ -49,17 +53,30 @@ class JobCancelledError(Exception):
 
 @dataclass
 class WorkerContext:
-    """What a worker process holds open: settings, job store, storage."""
+    """What a worker process holds open: settings, job store, storage, and the enhance
+    stage's networks between jobs."""
 
     settings: Settings
     store: JobStore
     storage: Storage
+    networks: EnhanceNetworks | None = None
+    """The networks of the last enhance stage this process ran (`enhance_networks`)."""
 
     @classmethod
     def create(cls, settings: Settings) -> WorkerContext:
         engine = make_engine(settings)
         init_db(engine)
         return cls(settings, JobStore(make_sessionmaker(engine)), make_storage(settings))
+
+    def enhance_networks(self, config: EnhanceConfig) -> EnhanceNetworks:
+        """The networks `config` runs: those kept from the last enhance stage where they
+        fit it, else loaded now and kept in their place (one set at a time, so a worker
+        holds one LDM)."""
+        from pipeline.enhance.networks import load_networks
+
+        if self.networks is None or not self.networks.fits(config):
+            self.networks = load_networks(config)
+        return self.networks
 
 
 SendTask = Callable[[str, list[Any], str], str]
@@ -292,8 +309,11 @@ def _run_stage(ctx: WorkerContext, job: JobView, stages: tuple[str, ...], index:
     for earlier in keys[:position]:
         inputs.update(_load_npz(ctx, earlier))
     progress = _Progress(ctx, job.id, index, len(stages))
+    networks = (ctx.enhance_networks(config.enhancement) if stages[index] == ENHANCE_STAGE
+                else None)
     with open_capture(capture_path(ctx, sha256, capture_key)) as reader:
-        outputs = run_stage(stages[index], reader, inputs, config, progress=progress)
+        outputs = run_stage(stages[index], reader, inputs, config, progress=progress,
+                            networks=networks)
     _save_npz(ctx, out_key, outputs)
     return True
 

@@ -3,8 +3,11 @@
 # bunny's LDM enhancement on CUDA, the light remesh ahead (the default there), timed for an
 # earlier commit's code (.base/, with this tree's weights) and for this tree, alternating on
 # one machine, each run a fresh process (JSON lines, also in $OUT/ab.jsonl); then this tree
-# warmed up at the timed shapes (a worker's second mesh: `--warm-up full`), without the
-# remesh, on beetle and profiled ($OUT/prof_bunny.txt), and the tests that need CUDA. About 3.5 minutes there (204 s on the twenty-fourth session's H100, with the unpacking).
+# warmed up at the timed shapes (a worker's second mesh: `--warm-up full`), with its networks
+# kept from before the warm-up (`--networks kept`, as a worker keeps them between jobs),
+# without the remesh, on beetle and profiled ($OUT/prof_bunny.txt), and the tests that need
+# CUDA. About 4 minutes there (204 s on the twenty-fourth session's H100, with the unpacking,
+# before the three `--networks kept` runs).
 set -uo pipefail
 source "$(dirname "$0")/setup.sh"
 out=${OUT:-.}

@@ -10,6 +10,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from pipeline.enhance.bounded_noise import BoundedNoiseConfig
+from pipeline.enhance.networks import EnhanceNetworks
 from pipeline.enhance.noise_level import noise_to_edge_ratio
 from pipeline.enhance.normal_filter import NormalFilterConfig, normal_filter
 from pipeline.enhance.render import (
@@ -181,16 +182,23 @@ def enhance_mesh(
     mesh: TriangleMesh,
     config: EnhanceConfig,
     progress: Callable[[float], None] | None = None,
+    networks: EnhanceNetworks | None = None,
 ) -> TriangleMesh:
     """The mesh with vertices moved; the view-based methods end with a light remesh
     (``remesh_iterations``), the smoothers keep the connectivity. The networks return a mesh
-    less noisy than ``min_noise_ratio`` as it came (`skips_enhancement`)."""
+    less noisy than ``min_noise_ratio`` as it came (`skips_enhancement`).
+
+    `networks`: the networks `config` runs, loaded beforehand (`networks.load_networks`) and
+    kept between meshes; None: loaded here, each as its stage begins."""
     from pipeline.enhance import baselines
-    from pipeline.enhance.inference import model_bytes, selector_presmoothed
+    from pipeline.enhance.inference import load_selector, model_bytes, selector_presmoothed
 
     validate_config(config)
     if mesh.vertex_count == 0 or mesh.face_count == 0:
         raise ValueError("mesh: has no vertices or no faces")
+    if networks is not None and not networks.fits(config):
+        raise ValueError("networks: loaded for another method, device or weights than "
+                         "the config's")
     if config.method == "taubin":
         return baselines.taubin_smooth(mesh, config.iterations)
     if config.method == "laplacian":
@@ -205,8 +213,9 @@ def enhance_mesh(
 
     device = resolve_device(config.device).type
     if config.method == "selector":
-        return selector_presmoothed(mesh, model_bytes(config, "selector"), config.bounded_noise,
-                                    device)
+        selector = (networks.selector if networks is not None
+                    else load_selector(model_bytes(config, "selector")))
+        return selector_presmoothed(mesh, selector, config.bounded_noise, device)
 
     def done(stage: str) -> None:
         if progress is not None:
@@ -216,13 +225,14 @@ def enhance_mesh(
     # while the stages before the remesh run.
     pieces = kernel_piece_count(mesh.face_count, None) if config.remesh_iterations > 0 else 0
     with kernel_children(pieces) as children:
-        return _enhanced_by_views(mesh, config, device, done, children)
+        return _enhanced_by_views(mesh, config, device, done, children, networks)
 
 
 def _enhanced_by_views(mesh: TriangleMesh, config: EnhanceConfig, device: str,
-                       done: Callable[[str], None], children: Sequence[KernelChild]
-                       ) -> TriangleMesh:
-    """`enhance_mesh` of the view-based methods, the light remesh's kernel in `children`."""
+                       done: Callable[[str], None], children: Sequence[KernelChild],
+                       networks: EnhanceNetworks | None) -> TriangleMesh:
+    """`enhance_mesh` of the view-based methods, the light remesh's kernel in `children`,
+    the `networks` given (None: loaded as their stages begin)."""
     from pipeline.enhance.device import accelerator
 
     # The stages gather neighbours all over the mesh; in a spatial order they hit the cache.
@@ -243,14 +253,15 @@ def _enhanced_by_views(mesh: TriangleMesh, config: EnhanceConfig, device: str,
         if gate.result():
             done("remesh")
             return mesh
-        inputs = update_inputs(ordered, config, device, done, renders)
+        inputs = update_inputs(ordered, config, device, done, renders, networks)
     done("presmooth")
     if config.remesh_iterations == 0:  # the output keeps the input's order
-        return restored(_updated(ordered, inputs, config, device, done), order)
+        return restored(_updated(ordered, inputs, config, device, done, networks), order)
     result = (_updated_remeshed_ahead(ordered, inputs, config, device, done, children,
-                                      checked.result() if checked is not None else None)
+                                      checked.result() if checked is not None else None,
+                                      networks)
               if ahead else
-              light_remesh(_updated(ordered, inputs, config, device, done),
+              light_remesh(_updated(ordered, inputs, config, device, done, networks),
                            config.remesh_iterations, children))
     done("remesh")
     return result
@@ -268,8 +279,8 @@ def remeshes_ahead(config: EnhanceConfig) -> bool:
 
 def _updated_remeshed_ahead(ordered: TriangleMesh, inputs: UpdateInputs, config: EnhanceConfig,
                             device: str, done: Callable[[str], None],
-                            children: Sequence[KernelChild], checked: CheckedFaces | None
-                            ) -> TriangleMesh:
+                            children: Sequence[KernelChild], checked: CheckedFaces | None,
+                            networks: EnhanceNetworks | None) -> TriangleMesh:
     """`_updated`, its light remesh started on the base beside the networks and the update,
     in `children`, and carried onto the moved base (`remesh_ahead`; `checked`: the base's
     faces, checked beforehand). What starts it (repair, split, order, pieces) runs in a
@@ -280,7 +291,7 @@ def _updated_remeshed_ahead(ordered: TriangleMesh, inputs: UpdateInputs, config:
 
     with ThreadPoolExecutor(max_workers=1) as pool:
         starting = pool.submit(start)
-        result = _updated(ordered, inputs, config, device, done)
+        result = _updated(ordered, inputs, config, device, done, networks)
         ahead = starting.result()
     if ahead is None:  # the repair dropped vertices: remesh the moved mesh
         return light_remesh(result, config.remesh_iterations, children)
@@ -288,18 +299,21 @@ def _updated_remeshed_ahead(ordered: TriangleMesh, inputs: UpdateInputs, config:
 
 
 def _updated(ordered: TriangleMesh, inputs: UpdateInputs, config: EnhanceConfig, device: str,
-             done: Callable[[str], None]) -> TriangleMesh:
+             done: Callable[[str], None], networks: EnhanceNetworks | None) -> TriangleMesh:
     """The networks' correction of the renders of `inputs`, the view update that follows it
     and the normal filter: the base moved."""
     from pipeline.enhance.device import accelerator
 
     learned = config.learned_gain and config.method != "views"
     enhanced = enhance_renders(inputs.base_renders, inputs.renders,
-                               replace(config, correction_gain=1.0) if learned else config)
+                               replace(config, correction_gain=1.0) if learned else config,
+                               None if networks is None else networks.enhancer)
     done("network")
     steps = view_steps(inputs.base, inputs.base_renders, enhanced, inputs.update,
                        accelerator(device))
-    gain = learned_vertex_gain(ordered, steps, config, device) if learned else None
+    gain = (learned_vertex_gain(ordered, steps, config, device,
+                                None if networks is None else networks.gain)
+            if learned else None)
     result, _ = apply_view_steps(inputs.base, steps, inputs.update, gain, accelerator(device))
     result = normal_filter(result, config.normal_filter, device)
     done("update")
@@ -328,12 +342,13 @@ def views_for(mesh: TriangleMesh, config: EnhanceConfig) -> ViewSet:
 def update_inputs(
     mesh: TriangleMesh, config: EnhanceConfig, device: str,
     done: Callable[[str], None] = lambda stage: None, renders: DepthRenders | None = None,
+    networks: EnhanceNetworks | None = None,
 ) -> UpdateInputs:
     """Renders the mesh from `views_for` (unless its `renders`, with colour, are given),
     calls `done("render")`, and pre-smooths it (smoothing steps on `device`) as
-    `config.method` wants."""
+    `config.method` wants, with the selector of `networks` (None: loaded here)."""
     from pipeline.enhance.device import accelerator
-    from pipeline.enhance.inference import model_bytes, presmoothed
+    from pipeline.enhance.inference import load_selector, model_bytes, presmoothed
 
     if renders is None:
         renders = render_depth(mesh, views_for(mesh, config), with_color=True,
@@ -342,7 +357,10 @@ def update_inputs(
     done("render")
     base, base_renders, update = mesh, renders, config.update
     if config.method != "views" and config.presmooth_iterations > 0:
-        selector = model_bytes(config, "selector") if config.presmooth_learned else None
+        selector = None
+        if config.presmooth_learned:
+            selector = (networks.selector if networks is not None
+                        else load_selector(model_bytes(config, "selector")))
         base = presmoothed(mesh, config.presmooth_iterations, config.presmooth_passes,
                            config.presmooth_adaptive, selector, device, config.bounded_noise)
         base_renders = render_depth(base, views, with_color=False, device=accelerator(device))
@@ -353,14 +371,16 @@ def update_inputs(
 
 
 def learned_vertex_gain(
-    mesh: TriangleMesh, steps: ViewSteps, config: EnhanceConfig, device: str = "cpu"
+    mesh: TriangleMesh, steps: ViewSteps, config: EnhanceConfig, device: str = "cpu",
+    model=None,
 ) -> NDArray[np.float64]:
     """(V,) each vertex's share of the correction, from the method's gain network on
-    `device`."""
+    `device`: `model`, loaded beforehand (`inference.load_vertex_gain`), else loaded here."""
     from pipeline.enhance.inference import load_vertex_gain, model_bytes, vertex_gains
     from pipeline.enhance.vertex_gain import gain_features
 
-    model = load_vertex_gain(model_bytes(config, f"{config.method}_gain"))
+    if model is None:
+        model = load_vertex_gain(model_bytes(config, f"{config.method}_gain"))
     return vertex_gains(model, gain_features(steps, mean_edge_length_m(mesh)), device)
 
 
@@ -419,14 +439,15 @@ def light_remesh_config(mesh: TriangleMesh, iterations: int) -> RemeshConfig:
 
 
 def enhance_renders(
-    base: DepthRenders, noisy: DepthRenders, config: EnhanceConfig
+    base: DepthRenders, noisy: DepthRenders, config: EnhanceConfig, enhancer=None
 ) -> NDArray[np.float32]:
     """(N, H, W) enhanced normalised depth of all views, in one batch: `base` (the
     pre-smoothed mesh's renders) moved by `config.correction_gain` of the network's correction,
-    `noisy` (the mesh's own renders) read beside it."""
+    `noisy` (the mesh's own renders) read beside it; `enhancer`: the network loaded beforehand
+    (`inference.load_enhancer`; None: loaded here)."""
     if config.method == "views":
         return base.depth_n
     from pipeline.enhance.inference import run_network
 
-    predicted = run_network(base, noisy, config)
+    predicted = run_network(base, noisy, config, enhancer)
     return base.depth_n + config.correction_gain * (predicted - base.depth_n)

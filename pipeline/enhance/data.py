@@ -354,10 +354,10 @@ def pose_pairs(
 def _presmoothed(noisy: TriangleMesh, config: DataConfig) -> TriangleMesh:
     """The mesh whose render is the networks' base depth, smoothed as `config` says."""
     from pipeline.enhance.bounded_noise import BoundedNoiseConfig
-    from pipeline.enhance.inference import presmoothed
+    from pipeline.enhance.inference import load_selector, presmoothed
     from pipeline.enhance.weights import shipped_bytes
 
-    selector = shipped_bytes("selector") if config.presmooth_learned else None
+    selector = load_selector(shipped_bytes("selector")) if config.presmooth_learned else None
     bounded = BoundedNoiseConfig() if config.presmooth_bounded else None
     return presmoothed(noisy, config.presmooth_iterations, config.presmooth_passes,
                        config.presmooth_adaptive, selector, bounded=bounded)

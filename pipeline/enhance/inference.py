@@ -267,13 +267,13 @@ def selector_blend(model, candidates: TwicingCandidates, device: str = "cpu"
 
 
 def presmoothed(
-    mesh: TriangleMesh, iterations: int, passes: int, adaptive: bool, selector: bytes | None,
+    mesh: TriangleMesh, iterations: int, passes: int, adaptive: bool, selector=None,
     device: str | None = None, bounded: BoundedNoiseConfig | None = None,
 ) -> TriangleMesh:
-    """The networks' pre-smoothing, for inference and training pairs alike: the selector's
-    blend when its bytes are given (its smoothing on `device`), else `baselines.presmooth`,
-    then `bounded`'s refinement where given (`bounded_noise_refine`); 0 iterations: the
-    mesh."""
+    """The networks' pre-smoothing, for inference and training pairs alike: the blend of a
+    loaded `selector` (`load_selector`) where one is given (its smoothing on `device`), else
+    `baselines.presmooth`, then `bounded`'s refinement where given
+    (`bounded_noise_refine`); 0 iterations: the mesh."""
     from pipeline.enhance.baselines import presmooth
     from pipeline.enhance.bounded_noise import bounded_noise_refine
     from pipeline.enhance.device import accelerator
@@ -288,9 +288,9 @@ def presmoothed(
     return bounded_noise_refine(mesh, smooth, bounded, accelerator(device))
 
 
-def selector_presmoothed(mesh: TriangleMesh, selector: bytes, bounded: BoundedNoiseConfig | None,
+def selector_presmoothed(mesh: TriangleMesh, selector, bounded: BoundedNoiseConfig | None,
                          device: str | None = None) -> TriangleMesh:
-    """The selector's (safetensors bytes) blend of the mesh's twicings, then `bounded`'s
+    """A loaded selector's (`load_selector`) blend of the mesh's twicings, then `bounded`'s
     refinement where given and where it runs (`refined_where_bounded`): from the blend of
     the weights averaged over the neighbours (`BoundedNoiseConfig.weight_passes`); where it
     does not run, the blend as it is. The smoothing steps run on `device` (None: scipy)."""
@@ -298,9 +298,8 @@ def selector_presmoothed(mesh: TriangleMesh, selector: bytes, bounded: BoundedNo
     from pipeline.enhance.device import accelerator
     from pipeline.enhance.twicing_blend import blend, twicing_candidates, weights_averaged
 
-    model = load_selector(selector)
-    candidates = twicing_candidates(mesh, model.config.blend, device)
-    weights = by_row_chunks(model, candidates.features, device or "cpu")
+    candidates = twicing_candidates(mesh, selector.config.blend, device)
+    weights = by_row_chunks(selector, candidates.features, device or "cpu")
 
     def blended(rows: NDArray[np.float32]) -> TriangleMesh:
         return mesh.with_vertices(blend(candidates.vertices_m, rows))
@@ -342,18 +341,18 @@ def dihedral(x, k: int, inverse: bool = False):
 
 Network = Callable[["torch.Tensor", "torch.Tensor", "torch.Tensor"], "torch.Tensor"]
 """A loaded network on its device: (N, 1, H, W) depth, validity and side inputs to the
-enhanced depth (`load_network`)."""
+enhanced depth (`as_network`)."""
 
 
-def load_network(config: EnhanceConfig) -> Network:
-    """`config.method`'s network (regressor or LDM), loaded and moved to `config.device`; on
-    the CPU its weights in channels-last order, where oneDNN's convolutions run quicker (the
-    bunny's 6 views through the LDM on 2 cores 2.09-2.26 -> 1.66-1.83 s, the output within
-    3.4e-6 of normalised depth). Not measured on a GPU, so left as it was there."""
+def load_enhancer(config: EnhanceConfig):
+    """`config.method`'s depth network (the regressor, or the LDM's `LDMModels`), loaded
+    and moved to `config.device`; on the CPU its weights in channels-last order, where
+    oneDNN's convolutions run quicker (the bunny's 6 views through the LDM on 2 cores
+    2.09-2.26 -> 1.66-1.83 s, the output within 3.4e-6 of normalised depth). Not measured
+    on a GPU, so left as it was there."""
     import torch
 
     from pipeline.enhance.device import resolve_device
-    from pipeline.enhance.pipelines.depth_ldm import enhance_depth_ldm
 
     device = resolve_device(config.device)
     layout = torch.channels_last if device.type == "cpu" else torch.contiguous_format
@@ -365,18 +364,28 @@ def load_network(config: EnhanceConfig) -> Network:
         for part in (models.vae, models.unet, models.controlnet, models.refines):
             if part is not None:
                 part.to(device, memory_format=layout)
-
-        def ldm(d, v, e):
-            return enhance_depth_ldm(models, d, v, config.steps, config.strength, config.seed, e)
-        return ldm
+        return models
     raise ValueError(f"method: {config.method!r} has no network")
 
 
+def as_network(enhancer, config: EnhanceConfig) -> Network:
+    """A loaded depth network (`load_enhancer`) as a `Network`, with `config`'s sampling
+    settings for the LDM."""
+    from pipeline.enhance.pipelines.depth_ldm import LDMModels, enhance_depth_ldm
+
+    if not isinstance(enhancer, LDMModels):
+        return enhancer
+
+    def ldm(d, v, e):
+        return enhance_depth_ldm(enhancer, d, v, config.steps, config.strength, config.seed, e)
+    return ldm
+
+
 def run_network(
-    base: DepthRenders, noisy: DepthRenders, config: EnhanceConfig
+    base: DepthRenders, noisy: DepthRenders, config: EnhanceConfig, enhancer=None
 ) -> NDArray[np.float32]:
-    """(N, H, W) enhanced normalised depth from the chosen network (`load_network`),
-    invalid pixels unchanged.
+    """(N, H, W) enhanced normalised depth from the chosen network: `enhancer`, loaded
+    beforehand for `config` (`load_enhancer`), else loaded here; invalid pixels unchanged.
 
     `base` are the renders the network corrects (of the pre-smoothed mesh), `noisy` those of
     the mesh as it came, from the same views (their colour gives the edge input).
@@ -390,7 +399,7 @@ def run_network(
     from pipeline.enhance.device import resolve_device
     from pipeline.enhance.models.common import side_inputs
 
-    net = load_network(config)
+    net = as_network(load_enhancer(config) if enhancer is None else enhancer, config)
     device = resolve_device(config.device)
     d = torch.from_numpy(base.depth_n[:, None]).to(device)
     v = torch.from_numpy(base.valid[:, None]).to(device)

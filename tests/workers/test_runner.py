@@ -70,3 +70,19 @@ def test_the_api_offers_every_config_section() -> None:
     sections = {name for name, value in dataclasses.asdict(ReconstructConfig()).items()
                 if isinstance(value, dict)}
     assert sections <= set(JobCreate.model_fields)
+
+
+def test_a_worker_keeps_its_enhance_networks_between_jobs(tmp_path) -> None:
+    """The same networks for every config they fit (another sampling setting too); a config
+    that needs others loads them in their place."""
+    from pipeline.enhance.config import EnhanceConfig
+    from workers.runner import WorkerContext
+    from workers.settings import Settings
+
+    ctx = WorkerContext.create(Settings(data_dir=tmp_path))
+    config = EnhanceConfig(method="regressor", device="cpu")
+    first = ctx.enhance_networks(config)
+    assert ctx.enhance_networks(config) is first
+    assert ctx.enhance_networks(dataclasses.replace(config, resolution=128)) is first
+    other = ctx.enhance_networks(dataclasses.replace(config, learned_gain=False))
+    assert other is not first and other.gain is None and ctx.networks is other

@@ -163,10 +163,10 @@ def test_the_torch_refinement_is_numpys(open_boundary):
 
 def _selector_presmoothed(noisy: TriangleMesh, config: BoundedNoiseConfig | None
                           ) -> TriangleMesh:
-    from pipeline.enhance.inference import selector_presmoothed
+    from pipeline.enhance.inference import load_selector, selector_presmoothed
     from pipeline.enhance.weights import shipped_bytes
 
-    return selector_presmoothed(noisy, shipped_bytes("selector"), config)
+    return selector_presmoothed(noisy, load_selector(shipped_bytes("selector")), config)
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
