@@ -124,7 +124,7 @@ def enhance_mesh_command(
 
     from app.cli.paths import output_file
     from pipeline.enhance import EnhanceConfig, enhance_mesh
-    from pipeline.enhance.config import skips_enhancement, validate_config
+    from pipeline.enhance.config import gated, validate_config
     from pipeline.enhance.noise_level import noise_to_edge_ratio
     from pipeline.enhance.weights import DEFAULT_FILES
     from pipeline.io.gltf_io import write_mesh
@@ -164,9 +164,10 @@ def enhance_mesh_command(
     )
     validate_config(config)
     mesh = read_mesh(mesh_in)
-    if skips_enhancement(mesh, config):
+    noise_ratio = noise_to_edge_ratio(mesh) if gated(config) else None
+    if noise_ratio is not None and noise_ratio < config.min_noise_ratio:
         typer.echo(
-            f"enhance-mesh: {mesh_in}'s estimated noise, {noise_to_edge_ratio(mesh):.3f} of its "
+            f"enhance-mesh: {mesh_in}'s estimated noise, {noise_ratio:.3f} of its "
             f"edge length, is below --min-noise-ratio {min_noise_ratio}: written unchanged",
             err=True,
         )

@@ -389,11 +389,16 @@ def skips_enhancement(mesh: TriangleMesh, config: EnhanceConfig, device: str | N
     """Whether `enhance_mesh` leaves `mesh` as it is: a network method on a mesh whose
     estimated noise is below `config.min_noise_ratio` (estimated on `device` where it is an
     accelerator)."""
-    if config.method not in ("ldm", "regressor") or config.min_noise_ratio == 0:
+    if not gated(config):
         return False
     from pipeline.enhance.device import accelerator
 
     return noise_to_edge_ratio(mesh, accelerator(device)) < config.min_noise_ratio
+
+
+def gated(config: EnhanceConfig) -> bool:
+    """Whether `config`'s method leaves a mesh less noisy than `min_noise_ratio` as it is."""
+    return config.method in ("ldm", "regressor") and config.min_noise_ratio > 0
 
 
 LIGHT_REMESH_MAX_ADDED_OUTSIDE = 2e-4
