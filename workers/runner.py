@@ -75,7 +75,10 @@ class WorkerContext:
         from pipeline.enhance.networks import load_networks
 
         if self.networks is None or not self.networks.fits(config):
+            started = time.perf_counter()
             self.networks = load_networks(config)
+            log.info("enhance networks for %s on %s loaded in %.2f s", config.method,
+                     self.networks.key[1], time.perf_counter() - started)
         return self.networks
 
 
