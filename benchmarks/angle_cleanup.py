@@ -31,7 +31,7 @@ from enhance import bunny_protocol  # noqa: E402
 from remesh_speed import light_remesh_config  # noqa: E402
 
 from pipeline import angle_cleanup  # noqa: E402
-from pipeline.enhance.config import EnhanceConfig, enhance_mesh  # noqa: E402
+from pipeline.enhance import EnhanceConfig, enhance_mesh  # noqa: E402
 from pipeline.mesh_order import reordered, spatial_order  # noqa: E402
 from pipeline.mesh_repair import compact, triangle_angles_deg  # noqa: E402
 from pipeline.remesh import remesh  # noqa: E402

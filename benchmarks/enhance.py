@@ -36,13 +36,13 @@ sys.path.insert(0, str(ROOT))
 
 from pipeline.enhance import EnhanceConfig, enhance_mesh  # noqa: E402
 from pipeline.enhance.bounded_noise import BoundedNoiseConfig  # noqa: E402
-from pipeline.enhance.config import (  # noqa: E402
+from pipeline.enhance.data import DataConfig, noisy_along_normals  # noqa: E402
+from pipeline.enhance.enhancement import (  # noqa: E402
     STAGE_PROGRESS,
     light_remesh,
     light_remesh_config,
     remeshes_ahead,
 )
-from pipeline.enhance.data import DataConfig, noisy_along_normals  # noqa: E402
 from pipeline.enhance.metrics import c2m_summary, normal_error_deg  # noqa: E402
 from pipeline.enhance.networks import load_networks  # noqa: E402
 from pipeline.enhance.normal_filter import NormalFilterConfig, normal_filter  # noqa: E402
@@ -312,7 +312,7 @@ def _recording_remesh_stats(stats: dict) -> None:
     """The light remesh's stats (`remesh.remesh`'s, or `finish_remesh_ahead`'s on the remesh
     started ahead) of the next `enhance_mesh`, with the seconds of that call, put in
     `stats`: the kernel's wait, the clean-up's counts. The calls themselves are unchanged."""
-    import pipeline.enhance.config as enhance_config
+    import pipeline.enhance.enhancement as enhancement
 
     def recorded(call):
         def wrapper(*args, **kwargs):
@@ -322,8 +322,8 @@ def _recording_remesh_stats(stats: dict) -> None:
             return out
         return wrapper
 
-    enhance_config.remesh = recorded(enhance_config.remesh)
-    enhance_config.finish_remesh_ahead = recorded(enhance_config.finish_remesh_ahead)
+    enhancement.remesh = recorded(enhancement.remesh)
+    enhancement.finish_remesh_ahead = recorded(enhancement.finish_remesh_ahead)
 
 
 def perf_child(args) -> None:

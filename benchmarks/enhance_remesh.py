@@ -31,7 +31,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from enhance import bunny_protocol, score  # noqa: E402
 
 from pipeline.enhance import EnhanceConfig, enhance_mesh  # noqa: E402
-from pipeline.enhance.config import light_remesh  # noqa: E402
+from pipeline.enhance.enhancement import light_remesh  # noqa: E402
 from pipeline.mesh import TriangleMesh, mean_edge_length_m  # noqa: E402
 from pipeline.remesh import RemeshConfig, angle_stats, remesh, surface_lost_edges  # noqa: E402
 

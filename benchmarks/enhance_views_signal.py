@@ -31,7 +31,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from enhance import bunny_protocol  # noqa: E402
 
 from pipeline.enhance import EnhanceConfig  # noqa: E402
-from pipeline.enhance.config import enhance_renders, update_inputs  # noqa: E402
+from pipeline.enhance.enhancement import enhance_renders, update_inputs  # noqa: E402
 from pipeline.enhance.metrics import signed_c2m  # noqa: E402
 from pipeline.enhance.render import render_depth  # noqa: E402
 from pipeline.enhance.update import view_steps  # noqa: E402

@@ -33,7 +33,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from enhance import bunny_protocol, score  # noqa: E402
 
 from pipeline.boundary_split import split_boundary_edges, split_everywhere  # noqa: E402
-from pipeline.enhance.config import EnhanceConfig, enhance_mesh  # noqa: E402
+from pipeline.enhance import EnhanceConfig, enhance_mesh  # noqa: E402
 from pipeline.mesh import TriangleMesh, mean_edge_length_m  # noqa: E402
 from pipeline.mesh_order import reordered, spatial_order  # noqa: E402
 from pipeline.mesh_repair import repair  # noqa: E402
@@ -47,8 +47,11 @@ from pipeline.remesh_kernel import kernel_children  # noqa: E402
 
 
 def light_remesh_config(mesh: TriangleMesh, processes: int | None) -> RemeshConfig:
-    """`enhance.config.light_remesh`'s settings, with `processes` kernel children."""
-    from pipeline.enhance.config import LIGHT_REMESH_MAX_ADDED_OUTSIDE, LIGHT_REMESH_MAX_LOST_EDGES
+    """`enhancement.light_remesh`'s settings, with `processes` kernel children."""
+    from pipeline.enhance.enhancement import (
+        LIGHT_REMESH_MAX_ADDED_OUTSIDE,
+        LIGHT_REMESH_MAX_LOST_EDGES,
+    )
 
     return RemeshConfig(target_edge_length_m=mean_edge_length_m(mesh), iterations=1,
                         max_kernel_added_outside=LIGHT_REMESH_MAX_ADDED_OUTSIDE,

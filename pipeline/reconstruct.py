@@ -260,7 +260,7 @@ def _stage_enhance(capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],
                    config: ReconstructConfig, progress: Progress | None,
                    networks: EnhanceNetworks | None = None) -> Artifacts:
     from pipeline.enhance import enhance_mesh
-    from pipeline.enhance.config import gated
+    from pipeline.enhance.enhancement import gated
     from pipeline.enhance.noise_level import noise_to_edge_ratio
 
     mesh = mesh_from_artifacts(inputs)

@@ -124,7 +124,8 @@ def enhance_mesh_command(
 
     from app.cli.paths import output_file
     from pipeline.enhance import EnhanceConfig, enhance_mesh
-    from pipeline.enhance.config import gated, validate_config
+    from pipeline.enhance.config import validate_config
+    from pipeline.enhance.enhancement import gated
     from pipeline.enhance.noise_level import noise_to_edge_ratio
     from pipeline.enhance.weights import DEFAULT_FILES
     from pipeline.io.gltf_io import write_mesh

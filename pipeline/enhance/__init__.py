@@ -1,6 +1,7 @@
 """LDM mesh enhancement (DESIGN.md step 8): depth views of a mesh are enhanced and the vertices
 follow them. The only package that imports torch (lazily, inside functions)."""
 
-from pipeline.enhance.config import EnhanceConfig, enhance_mesh
+from pipeline.enhance.config import EnhanceConfig
+from pipeline.enhance.enhancement import enhance_mesh
 
 __all__ = ["EnhanceConfig", "enhance_mesh"]

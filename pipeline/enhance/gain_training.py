@@ -10,9 +10,10 @@ import numpy as np
 import torch
 from numpy.typing import NDArray
 
-from pipeline.enhance.config import EnhanceConfig, enhance_renders, update_inputs
+from pipeline.enhance.config import EnhanceConfig
 from pipeline.enhance.data import PROCEDURAL, unit_extent
 from pipeline.enhance.device import resolve_device
+from pipeline.enhance.enhancement import enhance_renders, update_inputs
 from pipeline.enhance.inference import vertex_gains
 from pipeline.enhance.metrics import signed_c2m
 from pipeline.enhance.models.vertex_gain import VertexGainConfig, VertexGainNet

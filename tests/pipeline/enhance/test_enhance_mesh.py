@@ -120,8 +120,8 @@ def test_a_negative_noise_gate_is_named() -> None:
 
 
 def test_progress_names_every_stage_in_order_and_ends_at_one() -> None:
-    from pipeline.enhance.config import STAGE_PROGRESS
     from pipeline.enhance.data import noisy_along_normals
+    from pipeline.enhance.enhancement import STAGE_PROGRESS
     from tests.pipeline.enhance.conftest import sphere
 
     noisy = noisy_along_normals(sphere(0.5, 24), 0.01, np.random.default_rng(0))
@@ -149,7 +149,7 @@ def test_the_light_remesh_drops_the_kernel_where_it_adds_bad_faces(shape: str) -
 
     import trimesh
 
-    from pipeline.enhance.config import LIGHT_REMESH_MAX_ADDED_OUTSIDE, light_remesh
+    from pipeline.enhance.enhancement import LIGHT_REMESH_MAX_ADDED_OUTSIDE, light_remesh
     from pipeline.mesh import mean_edge_length_m
     from pipeline.remesh import RemeshConfig, remesh
 

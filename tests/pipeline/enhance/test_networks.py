@@ -7,7 +7,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from pipeline.enhance.config import EnhanceConfig, enhance_mesh
+from pipeline.enhance.config import EnhanceConfig
+from pipeline.enhance.enhancement import enhance_mesh
 from pipeline.enhance.networks import load_networks, networks_key, uses_gain, uses_selector
 from pipeline.enhance.weights import shipped_bytes
 from pipeline.mesh import TriangleMesh
