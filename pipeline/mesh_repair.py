@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.mesh import coordinate_columns, face_blocks, face_cross_columns_m2
+from pipeline.mesh import coordinate_columns_m, face_blocks, face_cross_columns_m2
 
 FloatArray = NDArray[np.float64]
 Faces = NDArray[np.int32]
@@ -17,7 +17,7 @@ def triangle_angles_deg(vertices_m: FloatArray, faces: Faces) -> FloatArray:
     """(F, 3) interior angle at each corner of each face, degrees (0 for degenerate). On the
     coordinates' columns, as `face_areas` (a third quicker than on gathered (F, 3, 3)
     corners, with the same bits), by `mesh.face_blocks`."""
-    columns = coordinate_columns(vertices_m)
+    columns = coordinate_columns_m(vertices_m)
     angles = np.empty(faces.shape, dtype=np.float64)
     for block in face_blocks(len(faces)):
         _block_angles_deg(columns, faces[block], angles[block])
@@ -36,6 +36,7 @@ def _block_angles_deg(columns: FloatArray, faces: Faces, out_deg: FloatArray) ->
     for c in range(3):
         (x, y, z), (u, v, w) = side[c], side[c - 1]
         denom = length[c] * length[c - 1]
+        # One buffer in turn: the dot product, the cosine, the angle in radians, in degrees.
         cos = x * u
         cos += y * v
         cos += z * w
@@ -84,7 +85,7 @@ def stable_argsort(keys: NDArray[np.integer]) -> NDArray[np.int64]:
 
 def face_areas(vertices_m: FloatArray, faces: Faces) -> FloatArray:
     """(F,) triangle areas, square metres; by `mesh.face_blocks`."""
-    columns = coordinate_columns(vertices_m)
+    columns = coordinate_columns_m(vertices_m)
     areas = np.empty(len(faces))
     for block in face_blocks(len(faces)):
         x, y, z = face_cross_columns_m2(columns, faces[block])
@@ -151,7 +152,10 @@ def used_vertices(faces: NDArray[np.integer], vertex_count: int
 
 
 RUN_COPY_MAX_DROPPED = 256
-"""`without_rows` copies the runs between at most this many dropped rows; past it, a mask."""
+"""`without_rows` copies the runs between at most this many dropped rows; past it, a mask.
+Each run is a slice in Python (about a microsecond), so the runs cost far less than the mask
+up to thousands of drops on a mesh of the bunny's size (a mask: 3 ms); a clean-up drops a
+few dozen."""
 
 
 def without_rows(array: NDArray, dropped: NDArray[np.int64]) -> NDArray:

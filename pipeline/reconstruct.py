@@ -260,7 +260,7 @@ def _stage_enhance(capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],
                    config: ReconstructConfig, progress: Progress | None,
                    networks: EnhanceNetworks | None = None) -> Artifacts:
     from pipeline.enhance import enhance_mesh
-    from pipeline.enhance.enhancement import gated
+    from pipeline.enhance.enhancement import skipped_at
     from pipeline.enhance.noise_level import noise_to_edge_ratio
 
     mesh = mesh_from_artifacts(inputs)
@@ -274,8 +274,7 @@ def _stage_enhance(capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],
     return result | _stats("enhance", {
         "method": config.enhancement.method, "views": config.enhancement.views,
         "noise_ratio": noise_ratio,
-        "skipped_as_clean": (gated(config.enhancement)
-                             and noise_ratio < config.enhancement.min_noise_ratio),
+        "skipped_as_clean": skipped_at(noise_ratio, config.enhancement),
         "triangles": out.face_count, "mean_offset_m": float(offset_m.mean()),
         "max_offset_m": float(offset_m.max())})
 

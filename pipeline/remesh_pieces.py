@@ -87,8 +87,8 @@ def stitched_sources(vertex_count: int, pieces: list[Piece],
                      rows: NDArray[np.int64]) -> tuple[NDArray[np.int64], FloatArray]:
     """The joined mesh's vertices as points of the input's faces: (V', 3) input vertex ids and
     (V', 3) weights, from each piece's kernel `sources` (ids into the piece's vertices,
-    weights, and how many vertices it held) and `stitched`'s `rows`. An input vertex is
-    itself, weight 1."""
+    weights, and how many vertices it held) and `stitched`'s `rows`, ascending (the input's
+    vertices first), as `stitched` gives them. An input vertex is itself, weight 1."""
     ids, weights = [], []
     for piece, (piece_ids, piece_weights, held_count) in zip(pieces, sources, strict=True):
         ids.append(piece.vertex_ids[piece_ids[held_count:]])

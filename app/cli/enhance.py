@@ -125,7 +125,7 @@ def enhance_mesh_command(
     from app.cli.paths import output_file
     from pipeline.enhance import EnhanceConfig, enhance_mesh
     from pipeline.enhance.config import validate_config
-    from pipeline.enhance.enhancement import gated
+    from pipeline.enhance.enhancement import gated, skipped_at
     from pipeline.enhance.noise_level import noise_to_edge_ratio
     from pipeline.enhance.weights import DEFAULT_FILES
     from pipeline.io.gltf_io import write_mesh
@@ -166,7 +166,7 @@ def enhance_mesh_command(
     validate_config(config)
     mesh = read_mesh(mesh_in)
     noise_ratio = noise_to_edge_ratio(mesh) if gated(config) else None
-    if noise_ratio is not None and noise_ratio < config.min_noise_ratio:
+    if noise_ratio is not None and skipped_at(noise_ratio, config):
         typer.echo(
             f"enhance-mesh: {mesh_in}'s estimated noise, {noise_ratio:.3f} of its "
             f"edge length, is below --min-noise-ratio {min_noise_ratio}: written unchanged",

@@ -254,12 +254,17 @@ def skips_enhancement(mesh: TriangleMesh, config: EnhanceConfig, device: str | N
         return False
     from pipeline.enhance.device import accelerator
 
-    return noise_to_edge_ratio(mesh, accelerator(device)) < config.min_noise_ratio
+    return skipped_at(noise_to_edge_ratio(mesh, accelerator(device)), config)
 
 
 def gated(config: EnhanceConfig) -> bool:
     """Whether `config`'s method leaves a mesh less noisy than `min_noise_ratio` as it is."""
     return config.method in ("ldm", "regressor") and config.min_noise_ratio > 0
+
+
+def skipped_at(noise_ratio: float, config: EnhanceConfig) -> bool:
+    """Whether `enhance_mesh` leaves a mesh of this `noise_to_edge_ratio` as it is."""
+    return gated(config) and noise_ratio < config.min_noise_ratio
 
 
 LIGHT_REMESH_MAX_ADDED_OUTSIDE = 2e-4

@@ -46,6 +46,11 @@ def uses_selector(config: EnhanceConfig) -> bool:
         and config.presmooth_learned)
 
 
+def uses_networks(config: EnhanceConfig) -> bool:
+    """Whether `config`'s enhancement runs any network (the smoothers run none)."""
+    return config.method in NETWORK_METHODS or uses_selector(config)
+
+
 def uses_gain(config: EnhanceConfig) -> bool:
     """Whether `config`'s enhancement runs a vertex gain network."""
     return config.method in NETWORK_METHODS and config.learned_gain
