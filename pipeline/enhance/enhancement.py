@@ -10,7 +10,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from pipeline.enhance.config import EnhanceConfig, validate_config
-from pipeline.enhance.networks import EnhanceNetworks
+from pipeline.enhance.networks import NETWORK_METHODS, EnhanceNetworks
 from pipeline.enhance.noise_level import noise_to_edge_ratio
 from pipeline.enhance.normal_filter import normal_filter
 from pipeline.enhance.render import (
@@ -259,7 +259,7 @@ def skips_enhancement(mesh: TriangleMesh, config: EnhanceConfig, device: str | N
 
 def gated(config: EnhanceConfig) -> bool:
     """Whether `config`'s method leaves a mesh less noisy than `min_noise_ratio` as it is."""
-    return config.method in ("ldm", "regressor") and config.min_noise_ratio > 0
+    return config.method in NETWORK_METHODS and config.min_noise_ratio > 0
 
 
 def skipped_at(noise_ratio: float, config: EnhanceConfig) -> bool:
