@@ -273,7 +273,7 @@ def network_predictions(weights: dict | None, pairs, idx, ldm_steps: tuple[int, 
     `idx`; a model whose weights do not load gives its error message instead."""
     import torch
 
-    from pipeline.enhance.inference import load_ldm, load_regressor
+    from pipeline.enhance.loading import load_ldm, load_regressor
     from pipeline.enhance.models.common import side_inputs
     from pipeline.enhance.pipelines.depth_ldm import enhance_depth_ldm
     from pipeline.enhance.validate import noisy_input

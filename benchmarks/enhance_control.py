@@ -37,7 +37,7 @@ from app.cli.train_data import training_pairs, training_sets  # noqa: E402
 from pipeline.enhance import train as tr  # noqa: E402
 from pipeline.enhance import train_config as tc  # noqa: E402
 from pipeline.enhance.data import make_pairs  # noqa: E402
-from pipeline.enhance.inference import load_ldm, load_regressor, regressor_to_bytes  # noqa: E402
+from pipeline.enhance.loading import load_ldm, load_regressor, regressor_to_bytes  # noqa: E402
 from pipeline.enhance.models.regressor import RefinedRegressor  # noqa: E402
 from pipeline.enhance.validate import depth_scores, validate_ldm, validate_regressor  # noqa: E402
 from pipeline.enhance.weights import shipped_bytes  # noqa: E402

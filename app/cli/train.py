@@ -183,7 +183,7 @@ def selector_ensemble(
         "different seeds.")],
 ) -> None:
     """Write the ensemble of trained selectors: the mean of their blend weights."""
-    from pipeline.enhance.inference import load_selector, selector_ensemble_to_bytes
+    from pipeline.enhance.loading import load_selector, selector_ensemble_to_bytes
 
     if len(set(members)) < 2 or len(set(members)) < len(members):
         raise ValueError("selector-ensemble: give two or more different selector files")

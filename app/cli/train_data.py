@@ -21,7 +21,7 @@ def selector_stage(out: Path, train_set, val_set, config, seed: int) -> dict:
     from tqdm import tqdm
 
     from pipeline.enhance import selector_training as st
-    from pipeline.enhance.inference import weights_to_bytes
+    from pipeline.enhance.loading import weights_to_bytes
 
     rng = np.random.default_rng(seed)
     t0 = time.monotonic()
@@ -50,7 +50,7 @@ def gain_stage(out: Path, train_set, val_set, config, seed: int,
     from tqdm import tqdm
 
     from pipeline.enhance import gain_training as gt
-    from pipeline.enhance.inference import weights_to_bytes
+    from pipeline.enhance.loading import weights_to_bytes
 
     rng = np.random.default_rng(seed)
     t0 = time.monotonic()

@@ -17,7 +17,7 @@ from app.cli.train_data import stage_bar
 from pipeline.enhance import train as tr
 from pipeline.enhance import train_loop as tl
 from pipeline.enhance.data import DepthPairs
-from pipeline.enhance.inference import (
+from pipeline.enhance.loading import (
     ldm_to_bytes,
     load_ldm,
     load_regressor,

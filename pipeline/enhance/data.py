@@ -354,7 +354,8 @@ def pose_pairs(
 def _presmoothed(noisy: TriangleMesh, config: DataConfig) -> TriangleMesh:
     """The mesh whose render is the networks' base depth, smoothed as `config` says."""
     from pipeline.enhance.bounded_noise import BoundedNoiseConfig
-    from pipeline.enhance.inference import load_selector, presmoothed
+    from pipeline.enhance.inference import presmoothed
+    from pipeline.enhance.loading import load_selector
     from pipeline.enhance.weights import shipped_bytes
 
     selector = load_selector(shipped_bytes("selector")) if config.presmooth_learned else None

@@ -52,7 +52,8 @@ def enhance_mesh(
     `networks`: the networks `config` runs, loaded beforehand (`networks.load_networks`) and
     kept between meshes; None: loaded here, each as its stage begins."""
     from pipeline.enhance import baselines
-    from pipeline.enhance.inference import load_selector, model_bytes, selector_presmoothed
+    from pipeline.enhance.inference import selector_presmoothed
+    from pipeline.enhance.loading import load_selector, model_bytes
 
     validate_config(config)
     if mesh.vertex_count == 0 or mesh.face_count == 0:
@@ -209,7 +210,8 @@ def update_inputs(
     calls `done("render")`, and pre-smooths it (smoothing steps on `device`) as
     `config.method` wants, with the selector of `networks` (None: loaded here)."""
     from pipeline.enhance.device import accelerator
-    from pipeline.enhance.inference import load_selector, model_bytes, presmoothed
+    from pipeline.enhance.inference import presmoothed
+    from pipeline.enhance.loading import load_selector, model_bytes
 
     if renders is None:
         renders = render_depth(mesh, views_for(mesh, config), with_color=True,
@@ -236,8 +238,9 @@ def learned_vertex_gain(
     model=None,
 ) -> NDArray[np.float64]:
     """(V,) each vertex's share of the correction, from the method's gain network on
-    `device`: `model`, loaded beforehand (`inference.load_vertex_gain`), else loaded here."""
-    from pipeline.enhance.inference import load_vertex_gain, model_bytes, vertex_gains
+    `device`: `model`, loaded beforehand (`loading.load_vertex_gain`), else loaded here."""
+    from pipeline.enhance.inference import vertex_gains
+    from pipeline.enhance.loading import load_vertex_gain, model_bytes
     from pipeline.enhance.vertex_gain import gain_features
 
     if model is None:
@@ -315,7 +318,7 @@ def enhance_renders(
     """(N, H, W) enhanced normalised depth of all views, in one batch: `base` (the
     pre-smoothed mesh's renders) moved by `config.correction_gain` of the network's correction,
     `noisy` (the mesh's own renders) read beside it; `enhancer`: the network loaded beforehand
-    (`inference.load_enhancer`; None: loaded here)."""
+    (`loading.load_enhancer`; None: loaded here)."""
     if config.method == "views":
         return base.depth_n
     from pipeline.enhance.inference import run_network

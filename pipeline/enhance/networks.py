@@ -26,12 +26,12 @@ class EnhanceNetworks:
     key: tuple[Any, ...]
     """What they were loaded for (`networks_key`)."""
     enhancer: Any | None
-    """The depth network on its device (`inference.load_enhancer`): `LDMModels` or a
+    """The depth network on its device (`loading.load_enhancer`): `LDMModels` or a
     regressor; None for the methods without one."""
     selector: Any | None
-    """The pre-smoothing's selector (`inference.load_selector`), where the method uses one."""
+    """The pre-smoothing's selector (`loading.load_selector`), where the method uses one."""
     gain: Any | None
-    """The vertex gain network (`inference.load_vertex_gain`), where the method uses one."""
+    """The vertex gain network (`loading.load_vertex_gain`), where the method uses one."""
 
     def fits(self, config: EnhanceConfig) -> bool:
         """Whether these are the networks `config` would load."""
@@ -68,12 +68,7 @@ def networks_key(config: EnhanceConfig) -> tuple[Any, ...]:
 
 def load_networks(config: EnhanceConfig) -> EnhanceNetworks:
     """The networks `config`'s enhancement runs, loaded onto its device."""
-    from pipeline.enhance.inference import (
-        load_enhancer,
-        load_selector,
-        load_vertex_gain,
-        model_bytes,
-    )
+    from pipeline.enhance.loading import load_enhancer, load_selector, load_vertex_gain, model_bytes
 
     enhancer = load_enhancer(config) if config.method in NETWORK_METHODS else None
     selector = load_selector(model_bytes(config, "selector")) if uses_selector(config) else None

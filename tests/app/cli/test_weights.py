@@ -5,7 +5,7 @@ import sys
 
 import torch
 
-from pipeline.enhance.inference import load_regressor, regressor_to_bytes
+from pipeline.enhance.loading import load_regressor, regressor_to_bytes
 from pipeline.enhance.models.regressor import RegressorConfig, ResidualUNet
 
 

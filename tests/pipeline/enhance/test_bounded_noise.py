@@ -163,7 +163,8 @@ def test_the_torch_refinement_is_numpys(open_boundary):
 
 def _selector_presmoothed(noisy: TriangleMesh, config: BoundedNoiseConfig | None
                           ) -> TriangleMesh:
-    from pipeline.enhance.inference import load_selector, selector_presmoothed
+    from pipeline.enhance.inference import selector_presmoothed
+    from pipeline.enhance.loading import load_selector
     from pipeline.enhance.weights import shipped_bytes
 
     return selector_presmoothed(noisy, load_selector(shipped_bytes("selector")), config)
@@ -176,7 +177,7 @@ def test_the_selectors_averaged_weights_give_the_refinement_a_closer_start(seed)
     the blend of its own weights."""
     import torch
 
-    from pipeline.enhance.inference import load_selector
+    from pipeline.enhance.loading import load_selector
     from pipeline.enhance.twicing_blend import twicing_candidates, weights_averaged
     from pipeline.enhance.weights import shipped_bytes
 

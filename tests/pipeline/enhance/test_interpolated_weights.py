@@ -3,11 +3,7 @@
 import pytest
 import torch
 
-from pipeline.enhance.inference import (
-    interpolated_weights,
-    load_regressor,
-    regressor_to_bytes,
-)
+from pipeline.enhance.loading import interpolated_weights, load_regressor, regressor_to_bytes
 from pipeline.enhance.models.regressor import RegressorConfig, ResidualUNet
 
 

@@ -2,11 +2,7 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.enhance.inference import (
-    load_selector,
-    selector_ensemble_to_bytes,
-    weights_to_bytes,
-)
+from pipeline.enhance.loading import load_selector, selector_ensemble_to_bytes, weights_to_bytes
 from pipeline.enhance.models.twicing_selector import (
     SelectorConfig,
     SelectorEnsemble,

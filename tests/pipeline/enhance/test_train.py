@@ -13,7 +13,7 @@ from pipeline.enhance.data import (
     procedural_meshes,
     same_surface_mask,
 )
-from pipeline.enhance.inference import weights_from_bytes, weights_to_bytes
+from pipeline.enhance.loading import weights_from_bytes, weights_to_bytes
 from pipeline.enhance.pipelines.depth_ldm import (
     LDMModels,
     enhance_depth_ldm,
@@ -114,7 +114,7 @@ def test_weights_round_trip_with_config():
 
 
 def test_tiny_models_enhance_a_mesh_deterministically(pairs):
-    from pipeline.enhance.inference import ldm_to_bytes
+    from pipeline.enhance.loading import ldm_to_bytes
 
     dev = torch.device("cpu")
     reg, _ = train_regressor(pairs, TINY, 0, dev)
@@ -202,7 +202,7 @@ def test_vae_weights_reload_with_their_config():
     """What `volumesh train --resume` does with a finished VAE stage."""
     from dataclasses import asdict
 
-    from pipeline.enhance.inference import load_vae
+    from pipeline.enhance.loading import load_vae
     from pipeline.enhance.models.vae import DepthVAE, VAEConfig
 
     cfg = VAEConfig(channels=(8, 8, 16, 16), initial_logvar=-3.0)
@@ -294,7 +294,7 @@ def test_finetuning_a_refining_ldm_leaves_its_regressor_alone(pairs):
 
 
 def test_a_refining_ldm_round_trips_through_its_bytes_with_its_regressor(pairs):
-    from pipeline.enhance.inference import ldm_to_bytes, load_ldm
+    from pipeline.enhance.loading import ldm_to_bytes, load_ldm
 
     dev = torch.device("cpu")
     reg, _ = train_regressor(pairs, TINY, 0, dev)
