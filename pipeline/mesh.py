@@ -101,7 +101,7 @@ def vertex_normals(
 
 def mean_edge_length_m(mesh: TriangleMesh) -> float:
     """Mean length of the faces' edges (an interior edge counted once per face), metres."""
-    columns = np.ascontiguousarray(np.asarray(mesh.vertices_m, np.float64).T)
+    columns = coordinate_columns_m(mesh.vertices_m)
     # Each corner gathered once, coordinate by coordinate: the same lengths in the same
     # order as np.linalg.norm of both ends' gathered rows, so the same mean bit for bit, at
     # a third of the time (numpy reduces an (N, 3) array along its rows slowly).

@@ -10,7 +10,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from pipeline.enhance.config import EnhanceConfig, validate_config
-from pipeline.enhance.networks import NETWORK_METHODS, EnhanceNetworks
+from pipeline.enhance.networks import NETWORK_METHODS, EnhanceNetworks, selector_for
 from pipeline.enhance.noise_level import noise_to_edge_ratio
 from pipeline.enhance.normal_filter import normal_filter
 from pipeline.enhance.render import (
@@ -53,7 +53,6 @@ def enhance_mesh(
     kept between meshes; None: loaded here, each as its stage begins."""
     from pipeline.enhance import baselines
     from pipeline.enhance.inference import selector_presmoothed
-    from pipeline.enhance.loading import load_selector, model_bytes
 
     validate_config(config)
     if mesh.vertex_count == 0 or mesh.face_count == 0:
@@ -75,8 +74,7 @@ def enhance_mesh(
 
     device = resolve_device(config.device).type
     if config.method == "selector":
-        selector = (networks.selector if networks is not None
-                    else load_selector(model_bytes(config, "selector")))
+        selector = selector_for(config, networks)
         return selector_presmoothed(mesh, selector, config.bounded_noise, device)
 
     def done(stage: str) -> None:
@@ -211,7 +209,6 @@ def update_inputs(
     `config.method` wants, with the selector of `networks` (None: loaded here)."""
     from pipeline.enhance.device import accelerator
     from pipeline.enhance.inference import presmoothed
-    from pipeline.enhance.loading import load_selector, model_bytes
 
     if renders is None:
         renders = render_depth(mesh, views_for(mesh, config), with_color=True,
@@ -220,10 +217,7 @@ def update_inputs(
     done("render")
     base, base_renders, update = mesh, renders, config.update
     if config.method != "views" and config.presmooth_iterations > 0:
-        selector = None
-        if config.presmooth_learned:
-            selector = (networks.selector if networks is not None
-                        else load_selector(model_bytes(config, "selector")))
+        selector = selector_for(config, networks) if config.presmooth_learned else None
         base = presmoothed(mesh, config.presmooth_iterations, config.presmooth_passes,
                            config.presmooth_adaptive, selector, device, config.bounded_noise)
         base_renders = render_depth(base, views, with_color=False, device=accelerator(device))

@@ -66,6 +66,15 @@ def networks_key(config: EnhanceConfig) -> tuple[Any, ...]:
             uses_selector(config), uses_gain(config))
 
 
+def selector_for(config: EnhanceConfig, networks: EnhanceNetworks | None):
+    """The selector `config` runs: the kept one of `networks`, else loaded now."""
+    from pipeline.enhance.loading import load_selector, model_bytes
+
+    if networks is not None:
+        return networks.selector
+    return load_selector(model_bytes(config, "selector"))
+
+
 def load_networks(config: EnhanceConfig) -> EnhanceNetworks:
     """The networks `config`'s enhancement runs, loaded onto its device."""
     from pipeline.enhance.loading import load_enhancer, load_selector, load_vertex_gain, model_bytes
