@@ -334,7 +334,12 @@ def perf_child(args) -> None:
     mesh, the accelerator's kernels for these shapes chosen already). With `--networks kept`
     the networks are loaded before the warm-up and both calls are given them
     (`networks.load_networks`), as a worker keeps them between jobs; `loaded`: each call
-    loads its own."""
+    loads its own. `--min-piece-faces` sets `remesh.MIN_PIECE_FACES` for both calls, to
+    time another piece count on the device machine's cores."""
+    import pipeline.remesh
+
+    if args.min_piece_faces is not None:
+        pipeline.remesh.MIN_PIECE_FACES = args.min_piece_faces
     truth, noisy = bunny_protocol(Path(args.meshes), args.seed, 1e-3 * args.edge_mm,
                                   name=args.mesh)
     weights = _weights(args.weights)
@@ -368,6 +373,8 @@ def perf_child(args) -> None:
         "seconds": ends[-1][1] - ends[0][1], "stage_seconds": stages, "device": args.device,
         "remesh_iterations": args.remesh_iterations, "warm_up": args.warm_up,
         "networks": args.networks,
+        "kernel_pieces": (pipeline.remesh.kernel_piece_count(noisy.face_count, None)
+                          if args.remesh_iterations else 0),
         "remesh_call_seconds": remesh_stats.get("seconds"),
         "kernel_wait_seconds": remesh_stats.get("kernel_wait_s"),
         "angle_cleanup": remesh_stats.get("angle_cleanup"),
@@ -419,6 +426,9 @@ def main() -> None:
     ap.add_argument("--networks", choices=["loaded", "kept"], default="loaded",
                     help="with --perf-child: each call loads its networks, or they are loaded "
                     "once and kept, as a worker keeps them between jobs")
+    ap.add_argument("--min-piece-faces", type=int, default=None,
+                    help="with --perf-child: the light remesh's kernel pieces have at least this "
+                    "many faces (`remesh.MIN_PIECE_FACES`; fewer: more pieces, up to one a core)")
     ap.add_argument("--edge-mm", type=float, default=5.0,
                     help="the protocol's edge length, mm (finer: a larger mesh, for timings)")
     ap.add_argument("--steps", type=int, default=4, help=argparse.SUPPRESS)

@@ -3,11 +3,13 @@
 # bunny's LDM enhancement on CUDA, the light remesh ahead (the default there), timed for an
 # earlier commit's code (.base/, with this tree's weights) and for this tree, alternating on
 # one machine, each run a fresh process (JSON lines, also in $OUT/ab.jsonl); then this tree
-# warmed up at the timed shapes (a worker's second mesh: `--warm-up full`), with its networks
-# kept from before the warm-up (`--networks kept`, as a worker keeps them between jobs),
-# without the remesh, on beetle and profiled ($OUT/prof_bunny.txt), and the tests that need
-# CUDA. About 4 minutes there (204 s on the twenty-fourth session's H100, with the unpacking,
-# before the three `--networks kept` runs).
+# warmed up at the timed shapes (a worker's second mesh: `--warm-up full`); with its networks
+# kept from before the warm-up (`--networks kept`, as a worker keeps them between jobs), after
+# either warm-up; a worker's steady state (both) with the kernel's pieces from 12.5 k faces
+# rather than 25 k (16 pieces on the bunny rather than 8, where the host has 16 cores);
+# without the remesh, on beetle and profiled ($OUT/prof_bunny.txt); and the tests that need
+# CUDA. About 6 minutes there (204 s on the twenty-fourth session's H100, with the unpacking,
+# before the five runs with the networks kept).
 set -uo pipefail
 source "$(dirname "$0")/setup.sh"
 out=${OUT:-.}
@@ -27,6 +29,11 @@ done
 timed tree .
 timed tree . --warm-up full
 timed tree . --warm-up full
+timed tree . --networks kept
+for _ in 1 2; do
+  timed tree . --warm-up full --networks kept
+  timed tree . --warm-up full --networks kept --min-piece-faces 12500
+done
 timed tree . --remesh-iterations 0
 timed tree . --mesh beetle
 timed tree . --profile "$out/prof_bunny.txt"
