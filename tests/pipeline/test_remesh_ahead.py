@@ -14,6 +14,7 @@ from pipeline.remesh import RemeshConfig, remesh
 from pipeline.remesh_ahead import (
     checked_faces,
     finish_remesh_ahead,
+    in_background,
     midpoints_extended,
     start_remesh_ahead,
 )
@@ -146,3 +147,29 @@ def test_faces_checked_beforehand_give_the_same_remesh() -> None:
     duplicated = np.vstack([mesh.faces, mesh.faces[:1]])
     assert not is_repaired(mesh.vertices_m, duplicated)
     assert not checked_faces(TriangleMesh(vertices_m=mesh.vertices_m, faces=duplicated)).repaired
+
+
+def test_the_pieces_are_joined_in_a_thread_of_their_own() -> None:
+    """The kernel's outcome is waited for and joined beside the caller's work, which it gets
+    when it asks; an error raised there is raised to it."""
+    import threading
+    import time
+
+    ran_in, release = [], threading.Event()
+
+    def join() -> tuple[None, str]:
+        ran_in.append(threading.current_thread())
+        release.wait(5.0)
+        return None, "joined"
+
+    wait = in_background(join)
+    time.sleep(0.05)
+    assert ran_in and ran_in[0] is not threading.current_thread()  # started, not waited for
+    release.set()
+    assert wait() == (None, "joined")
+
+    def failing() -> tuple[None, str]:
+        raise ValueError("remesh piece 0: the kernel moved a vertex of its cut")
+
+    with pytest.raises(ValueError, match="moved a vertex"):
+        in_background(failing)()
