@@ -50,6 +50,20 @@ from pipeline.remesh import (
 )
 from pipeline.remesh_kernel import Faces, FloatArray, KernelChild, KernelOutcome
 
+Carry = Callable[[FloatArray, NDArray[np.int64], FloatArray, Faces], tuple[FloatArray, FloatArray]]
+"""The kernel's result carried onto the moved mesh (`carried_with_angles`'s arguments and
+outcome): a finish's one full-mesh step that another device can take (on a GPU,
+`enhance.carry_torch.carried_on`)."""
+
+
+def carried_with_angles(vertices_m: FloatArray, source_ids: NDArray[np.int64],
+                        source_weights: FloatArray, faces: Faces
+                        ) -> tuple[FloatArray, FloatArray]:
+    """(V', 3) the points with (V', 3) barycentric `source_weights` on the (V', 3) corners
+    `source_ids` of (N, 3) `vertices_m`, and (F, 3) `triangle_angles_deg` of `faces` on them."""
+    carried_m = np.einsum("vk,vkd->vd", source_weights, vertices_m[source_ids])
+    return carried_m, triangle_angles_deg(carried_m, faces)
+
 
 @dataclass(frozen=True)
 class RemeshAhead:
@@ -145,12 +159,13 @@ def _repaired(mesh: TriangleMesh, config: RemeshConfig, faces_repaired: bool
     return repair(mesh.vertices_m, mesh.faces, config.min_component_share)
 
 
-def finish_remesh_ahead(ahead: RemeshAhead, moved: TriangleMesh
+def finish_remesh_ahead(ahead: RemeshAhead, moved: TriangleMesh,
+                        carry: Carry = carried_with_angles
                         ) -> tuple[TriangleMesh, dict[str, Any]]:
     """The remesh ended on `moved`, the mesh given to `start_remesh_ahead` with its vertices
-    moved: the kernel's result carried onto it and cleaned up, or, where the kernel failed or
-    is dropped, `moved` cleaned up alone (as `remesh.remesh` does). Stats as `remesh.remesh`
-    gives them, the kernel's figures measured before the move."""
+    moved: the kernel's result carried onto it (by `carry`) and cleaned up, or, where the
+    kernel failed or is dropped, `moved` cleaned up alone (as `remesh.remesh` does). Stats
+    as `remesh.remesh` gives them, the kernel's figures measured before the move."""
     config, stats = ahead.config, dict(ahead.stats)
     waited_from = time.perf_counter()
     result, warning = ahead.wait()
@@ -166,9 +181,9 @@ def finish_remesh_ahead(ahead: RemeshAhead, moved: TriangleMesh
         return out, {**cleanup_stats, **stats}
     kernel_input_m = midpoints_extended(moved.vertices_m, ahead.midpoint_parents)[
         ahead.vertex_order]
-    carried_m = np.einsum("vk,vkd->vd", result.source_weights,
-                          kernel_input_m[result.source_ids])
-    return cleaned_up(carried_m, result.faces, config, stats, in_order=True)
+    carried_m, angles = carry(kernel_input_m, result.source_ids, result.source_weights,
+                              result.faces)
+    return cleaned_up(carried_m, result.faces, config, stats, angles, in_order=True)
 
 
 def midpoints_extended(vertices_m: FloatArray, parents: NDArray[np.int64]) -> FloatArray:

@@ -27,6 +27,7 @@ from pipeline.remesh import RemeshConfig, kernel_piece_count, remesh
 from pipeline.remesh_ahead import (
     CheckedFaces,
     RemeshAhead,
+    carried_with_angles,
     checked_faces,
     finish_remesh_ahead,
     start_remesh_ahead,
@@ -144,7 +145,10 @@ def _updated_remeshed_ahead(ordered: TriangleMesh, inputs: UpdateInputs, config:
     """`_updated`, its light remesh started on the base beside the networks and the update,
     in `children`, and carried onto the moved base (`remesh_ahead`; `checked`: the base's
     faces, checked beforehand). What starts it (repair, split, order, pieces) runs in a
-    thread: on a GPU the host has little else to do."""
+    thread: on a GPU the host has little else to do. There the result is carried onto the
+    moved base on the device (`carry_torch`)."""
+    from pipeline.enhance.carry_torch import carried_on
+    from pipeline.enhance.device import accelerator
     def start() -> RemeshAhead | None:
         remesh_config = light_remesh_config(inputs.base, config.remesh_iterations)
         return start_remesh_ahead(inputs.base, remesh_config, children, checked)
@@ -155,7 +159,9 @@ def _updated_remeshed_ahead(ordered: TriangleMesh, inputs: UpdateInputs, config:
         ahead = starting.result()
     if ahead is None:  # the repair dropped vertices: remesh the moved mesh
         return light_remesh(result, config.remesh_iterations, children)
-    return finish_remesh_ahead(ahead, result)[0]
+    there = accelerator(device)
+    return finish_remesh_ahead(ahead, result,
+                               carried_with_angles if there is None else carried_on(there))[0]
 
 
 def _updated(ordered: TriangleMesh, inputs: UpdateInputs, config: EnhanceConfig, device: str,

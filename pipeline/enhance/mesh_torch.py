@@ -32,6 +32,23 @@ def face_normals(vertices_m: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
     return torch.where(length > 0, normals / length.clamp_min(1e-300), 0.0)
 
 
+def triangle_angles_deg(vertices_m: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+    """(F, 3) interior angle at each corner of (F, 3) int64 `faces`, degrees (0 for
+    degenerate), in `vertices_m`'s dtype: `mesh_repair.triangle_angles_deg`'s steps in its
+    order, so both agree to the rounding of their arccos."""
+    corner = vertices_m[faces]
+    side = corner.roll(-1, dims=1) - corner  # side c runs from corner c to corner c + 1
+    x, y, z = side.unbind(dim=2)
+    length = torch.sqrt(x * x + y * y + z * z)
+    before, length_before = side.roll(1, dims=1), length.roll(1, dims=1)
+    u, v, w = before.unbind(dim=2)
+    dot = x * u + y * v + z * w
+    denom = length * length_before
+    positive = denom > 0
+    cos = torch.where(positive, -dot / torch.where(positive, denom, 1.0), 1.0)
+    return torch.rad2deg(torch.arccos(cos.clamp(-1.0, 1.0)))
+
+
 def mean_edge_length_m(vertices_m: torch.Tensor, faces: torch.Tensor) -> float:
     """Mean length of the faces' edges (an interior edge counted once per face), metres."""
     corners = vertices_m[faces]

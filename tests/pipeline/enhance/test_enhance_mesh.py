@@ -239,6 +239,23 @@ def test_the_accelerator_path_gives_the_cpu_paths_mesh(
     np.testing.assert_allclose(there.vertices_m, host.vertices_m, rtol=0, atol=1e-7)
 
 
+def test_the_accelerator_path_remeshed_ahead_gives_the_cpu_paths_mesh(
+        noisy_sphere: tuple[TriangleMesh, TriangleMesh], monkeypatch: pytest.MonkeyPatch) -> None:
+    """With the light remesh started ahead (the default on a GPU), the accelerator path also
+    carries the kernel's result onto the moved mesh and measures its angles there
+    (`carry_torch`): forced onto the CPU, the same faces and vertices as the host's."""
+    import pipeline.enhance.device as device
+
+    _, noisy = noisy_sphere
+    config = EnhanceConfig(method="ldm", resolution=96, device="cpu", remesh_ahead=True)
+    host = enhance_mesh(noisy, config)
+    monkeypatch.setattr(device, "accelerator", lambda name: name)
+    there = enhance_mesh(noisy, config)
+    assert host.face_count != noisy.face_count  # remeshed
+    np.testing.assert_array_equal(there.faces, host.faces)
+    np.testing.assert_allclose(there.vertices_m, host.vertices_m, rtol=0, atol=1e-7)
+
+
 @pytest.mark.skipif(not __import__("torch").cuda.is_available(), reason="no CUDA device")
 def test_the_cuda_path_gives_the_cpu_paths_mesh(
         noisy_sphere: tuple[TriangleMesh, TriangleMesh]) -> None:

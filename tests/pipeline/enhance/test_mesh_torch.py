@@ -13,6 +13,7 @@ from pipeline.enhance import mesh_torch
 from pipeline.enhance.baselines import mean_operator
 from pipeline.enhance.data import noisy_along_normals
 from pipeline.mesh import TriangleMesh, mean_edge_length_m, vertex_normals
+from pipeline.mesh_repair import triangle_angles_deg
 from tests.pipeline.enhance.conftest import sphere
 
 
@@ -57,6 +58,23 @@ def test_normals_and_edge_length_are_pipeline_meshs(mesh: TriangleMesh) -> None:
                                rtol=0, atol=2e-7)
     assert mesh_torch.mean_edge_length_m(vertices_m, _faces(mesh)) == pytest.approx(
         mean_edge_length_m(mesh), rel=1e-12)
+
+
+@settings(max_examples=25, deadline=None)
+@given(mesh=MESHES)
+def test_angles_are_mesh_repairs(mesh: TriangleMesh) -> None:
+    """The same steps in the same order: they differ by rounding alone, most where an angle
+    is near 0 or 180 degrees. A face with a repeated corner gives 0 at each corner, and three
+    corners in a line 0, 180 and 0, as there."""
+    line = len(mesh.vertices_m) + np.arange(3)
+    vertices_m = np.vstack([mesh.vertices_m, [[0.0, 0, 0], [1, 0, 0], [2, 0, 0]]])
+    faces = np.vstack([mesh.faces, [[0, 0, 1], [2, 2, 2]], line[None]]).astype(np.int32)
+    expected = triangle_angles_deg(vertices_m, faces)
+    got = mesh_torch.triangle_angles_deg(torch.from_numpy(vertices_m),
+                                         torch.from_numpy(faces.astype(np.int64)))
+    assert got.dtype == torch.float64
+    np.testing.assert_allclose(got.numpy(), expected, rtol=0, atol=1e-9)
+    assert (got[-3:-1] == 0).all() and got[-1].tolist() == expected[-1].tolist()
 
 
 @settings(max_examples=25, deadline=None)
