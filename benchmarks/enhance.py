@@ -12,7 +12,8 @@ renders (meshes never trained on). Targets are checked and reported as they come
 The timing alone, per stage, in this process (on a GPU: `--device cuda`):
 
     .venv/bin/python benchmarks/enhance.py --perf-child [--device cuda] [--remesh-iterations 0]
-        [--remesh auto|ahead|after] [--warm-up small|full] [--profile FILE]
+        [--remesh auto|ahead|after] [--warm-up small|full] [--networks loaded|kept]
+        [--min-piece-faces N] [--profile FILE]
 """
 
 from __future__ import annotations

@@ -142,7 +142,9 @@ def start_remesh_ahead(mesh: TriangleMesh, config: RemeshConfig,
 
 def in_background(call: Callable[[], KernelOutcome]) -> Callable[[], KernelOutcome]:
     """`call` started now in a thread of its own, and a call that waits for its outcome (an
-    exception it raised is raised there)."""
+    exception it raised is raised there, and nowhere where no one waits). The thread is
+    not a daemon: the interpreter's exit waits for the kernel's children, which end with
+    their work, at their timeout or when `kernel_children` ends them."""
     pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="remesh-join")
     outcome = pool.submit(call)
     pool.shutdown(wait=False)
@@ -167,6 +169,8 @@ def finish_remesh_ahead(ahead: RemeshAhead, moved: TriangleMesh,
     kernel failed or is dropped, `moved` cleaned up alone (as `remesh.remesh` does). Stats
     as `remesh.remesh` gives them, the kernel's figures measured before the move."""
     config, stats = ahead.config, dict(ahead.stats)
+    # The finish's own wait: the pieces are joined in `in_background`, so this holds the join
+    # only where the kernel ended late (before the twenty-seventh session it always did).
     waited_from = time.perf_counter()
     result, warning = ahead.wait()
     stats["kernel_wait_s"] = time.perf_counter() - waited_from

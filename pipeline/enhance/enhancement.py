@@ -149,6 +149,7 @@ def _updated_remeshed_ahead(ordered: TriangleMesh, inputs: UpdateInputs, config:
     moved base on the device (`carry_torch`)."""
     from pipeline.enhance.carry_torch import carried_on
     from pipeline.enhance.device import accelerator
+
     def start() -> RemeshAhead | None:
         remesh_config = light_remesh_config(inputs.base, config.remesh_iterations)
         return start_remesh_ahead(inputs.base, remesh_config, children, checked)

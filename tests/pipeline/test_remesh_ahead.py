@@ -153,18 +153,18 @@ def test_the_pieces_are_joined_in_a_thread_of_their_own() -> None:
     """The kernel's outcome is waited for and joined beside the caller's work, which it gets
     when it asks; an error raised there is raised to it."""
     import threading
-    import time
 
-    ran_in, release = [], threading.Event()
+    ran_in, started, release = [], threading.Event(), threading.Event()
 
     def join() -> tuple[None, str]:
         ran_in.append(threading.current_thread())
+        started.set()
         release.wait(5.0)
         return None, "joined"
 
     wait = in_background(join)
-    time.sleep(0.05)
-    assert ran_in and ran_in[0] is not threading.current_thread()  # started, not waited for
+    assert started.wait(5.0)  # started before anyone waits for it
+    assert ran_in[0] is not threading.current_thread()
     release.set()
     assert wait() == (None, "joined")
 
