@@ -22,6 +22,7 @@ import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -316,8 +317,8 @@ def _run_stage(ctx: WorkerContext, job: JobView, stages: tuple[str, ...], index:
     for earlier in keys[:position]:
         inputs.update(_load_npz(ctx, earlier))
     progress = _Progress(ctx, job.id, index, len(stages))
-    networks = (ctx.enhance_networks(config.enhancement) if stages[index] == ENHANCE_STAGE
-                else None)
+    networks = (partial(ctx.enhance_networks, config.enhancement)
+                if stages[index] == ENHANCE_STAGE else None)
     with open_capture(capture_path(ctx, sha256, capture_key)) as reader:
         outputs = run_stage(stages[index], reader, inputs, config, progress=progress,
                             networks=networks)

@@ -1,6 +1,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 from pathlib import Path
 
 import numpy as np
@@ -111,3 +112,36 @@ def test_unknown_stages_and_missing_inputs_are_value_errors(sphere_capture: Path
             run_stage("refine", capture, {}, ReconstructConfig())
     with pytest.raises(ValueError, match="vertices_m"):
         mesh_from_artifacts({})
+
+
+def test_the_enhance_stage_asks_for_its_networks_only_where_it_enhances(
+        sphere_capture: Path,
+        whole_run: tuple[TriangleMesh, dict, list[str], list[float]]) -> None:
+    """A worker's kept networks (loading them took a fresh worker 2.2 s) are asked for only
+    where the mesh is noisy enough to enhance; a clean mesh comes back as it was."""
+    from pipeline.enhance import EnhanceConfig
+    from pipeline.enhance.data import noisy_along_normals
+    from pipeline.enhance.networks import EnhanceNetworks, load_networks
+
+    enhancement = EnhanceConfig(method="regressor", resolution=32, remesh_iterations=0)
+    config = dataclasses.replace(ReconstructConfig(), enhancement=enhancement)
+    asked: list[EnhanceConfig] = []
+
+    def networks() -> EnhanceNetworks:
+        asked.append(enhancement)
+        return load_networks(enhancement)
+
+    clean = whole_run[0]
+    noisy = noisy_along_normals(clean, 0.01, np.random.default_rng(0))
+    with open_capture(sphere_capture) as capture:
+        left = run_stage("enhance", capture, {"vertices_m": clean.vertices_m,
+                                              "faces": clean.faces}, config, None, networks)
+        assert asked == []
+        stats = json.loads(str(left["stats_enhance"]))
+        assert stats["skipped_as_clean"] is True and stats["noise_ratio"] < 0.05
+        assert np.array_equal(left["vertices_m"], clean.vertices_m)
+        moved = run_stage("enhance", capture, {"vertices_m": noisy.vertices_m,
+                                               "faces": noisy.faces}, config, None, networks)
+    assert asked == [enhancement]
+    assert json.loads(str(moved["stats_enhance"]))["skipped_as_clean"] is False
+    assert not np.allclose(moved["vertices_m"], noisy.vertices_m)
