@@ -89,6 +89,22 @@ def test_a_kernel_it_drops_leaves_the_moved_mesh_cleaned_up() -> None:
     np.testing.assert_array_equal(out.vertices_m, expected.vertices_m)
 
 
+@pytest.mark.parametrize("pieces", [1, 2])
+def test_a_kernel_that_fails_leaves_the_moved_mesh_cleaned_up(pieces: int) -> None:
+    """A kernel past its timeout, waited for in the join's thread, is a warning, and the
+    answer is the moved mesh's clean-up, as for a kernel dropped."""
+    mesh = _noisy_sphere(5, False, subdivisions=2)
+    config = replace(_config(mesh, pieces), timeout_s=1e-3)
+    moved = TriangleMesh(vertices_m=mesh.vertices_m * 1.01, faces=mesh.faces)
+    ahead = start_remesh_ahead(mesh, config)
+    assert ahead is not None
+    out, stats = finish_remesh_ahead(ahead, moved)
+    assert "timed out" in stats["warning"] and "kept the unremeshed mesh" in stats["warning"]
+    expected, _ = remesh(moved, replace(config, iterations=0))
+    np.testing.assert_array_equal(out.faces, expected.faces)
+    np.testing.assert_array_equal(out.vertices_m, expected.vertices_m)
+
+
 def test_a_repair_that_drops_vertices_is_left_to_the_plain_remesh() -> None:
     mesh = _noisy_sphere(6, False, subdivisions=2)
     loose = TriangleMesh(vertices_m=np.vstack([mesh.vertices_m, [[5.0, 5.0, 5.0]]]),
