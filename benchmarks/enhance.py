@@ -371,7 +371,8 @@ def perf_child(args) -> None:
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     stages = {name: t - before for (_, before), (name, t) in zip(ends, ends[1:], strict=False)}
     print(json.dumps({
-        "seconds": ends[-1][1] - ends[0][1], "stage_seconds": stages, "device": args.device,
+        "mesh": args.mesh, "seconds": ends[-1][1] - ends[0][1], "stage_seconds": stages,
+        "device": args.device,
         "remesh_iterations": args.remesh_iterations, "warm_up": args.warm_up,
         "networks": args.networks,
         "kernel_pieces": (pipeline.remesh.kernel_piece_count(noisy.face_count, None)

@@ -7,9 +7,10 @@
 # kept from before the warm-up (`--networks kept`, as a worker keeps them between jobs), after
 # either warm-up; a worker's steady state (both) with the kernel's pieces from 12.5 k faces
 # rather than 25 k (16 pieces on the bunny rather than 8, where the host has 16 cores);
-# without the remesh, on beetle and profiled ($OUT/prof_bunny.txt); and the tests that need
-# CUDA. About 6 minutes there (204 s on the twenty-fourth session's H100, with the unpacking,
-# before the five runs with the networks kept).
+# without the remesh, on beetle and profiled ($OUT/prof_bunny.txt); each variant's min /
+# median / max ($OUT/summary.json, `summary.py`); and the tests that need CUDA. About 6
+# minutes there (204 s on the twenty-fourth session's H100, with the unpacking, before the
+# five runs with the networks kept).
 set -uo pipefail
 source "$(dirname "$0")/setup.sh"
 out=${OUT:-.}
@@ -37,6 +38,7 @@ done
 timed tree . --remesh-iterations 0
 timed tree . --mesh beetle
 timed tree . --profile "$out/prof_bunny.txt"
+python3 "$here/benchmarks/device/summary.py" "$out/ab.jsonl" | tee "$out/summary.json"
 if python3 -c "import pytest, hypothesis" 2>/dev/null; then
   python3 -m pytest -q -p no:cacheprovider tests/pipeline/enhance -k cuda 2>&1 | tail -5
 fi
