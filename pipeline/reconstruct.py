@@ -276,8 +276,8 @@ def _stage_enhance(capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],
                                             networks() if networks is not None else None)
     _tick(progress, 1.0)
     # The light remesh renumbers vertices: how far the surface moved is measured against
-    # the surface before, not vertex by vertex.
-    offset_m = np.abs(signed_distances_m(out.vertices_m, mesh))
+    # the surface before, not vertex by vertex (a clean mesh has not moved).
+    offset_m = np.zeros(1) if skipped else np.abs(signed_distances_m(out.vertices_m, mesh))
     result: Artifacts = {"vertices_m": out.vertices_m, "faces": out.faces}
     return result | _stats("enhance", {
         "method": config.enhancement.method, "views": config.enhancement.views,

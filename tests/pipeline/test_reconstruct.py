@@ -139,6 +139,7 @@ def test_the_enhance_stage_asks_for_its_networks_only_where_it_enhances(
         assert asked == []
         stats = json.loads(str(left["stats_enhance"]))
         assert stats["skipped_as_clean"] is True and stats["noise_ratio"] < 0.05
+        assert stats["max_offset_m"] == 0.0
         assert np.array_equal(left["vertices_m"], clean.vertices_m)
         moved = run_stage("enhance", capture, {"vertices_m": noisy.vertices_m,
                                                "faces": noisy.faces}, config, None, networks)
