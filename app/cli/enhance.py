@@ -166,7 +166,8 @@ def enhance_mesh_command(
     validate_config(config)
     mesh = read_mesh(mesh_in)
     noise_ratio = noise_to_edge_ratio(mesh) if gated(config) else None
-    if noise_ratio is not None and skipped_at(noise_ratio, config):
+    skipped = noise_ratio is not None and skipped_at(noise_ratio, config)
+    if skipped:
         typer.echo(
             f"enhance-mesh: {mesh_in}'s estimated noise, {noise_ratio:.3f} of its "
             f"edge length, is below --min-noise-ratio {min_noise_ratio}: written unchanged",
@@ -179,7 +180,10 @@ def enhance_mesh_command(
             bar.n = int(fraction * 100)
             bar.refresh()
 
-        result = enhance_mesh(mesh, config, progress)
+        # As `enhance_mesh` leaves it, by the decision just told (its own gate measures
+        # again, in torch on a GPU, and could fall the other side of the line).
+        result = mesh if skipped else enhance_mesh(mesh, config, progress)
+        progress(1.0)
     write_mesh(out, result)
     typer.echo(f"wrote {out} ({result.vertex_count} vertices, {result.face_count} triangles, "
                f"{out.stat().st_size} bytes; {method}, {time.perf_counter() - started:.1f} s)")

@@ -153,3 +153,23 @@ def test_the_output_is_written_by_its_suffix_and_others_refused_before_the_work(
                                        "--out", str(tmp_path / "out.obj")])
     assert isinstance(refused.exception, ValueError)
     assert str(refused.exception) == f"--out: {tmp_path / 'out.obj'} must end in .glb or .ply"
+
+
+def test_a_clean_mesh_is_written_unchanged_by_the_decision_told(tmp_path, monkeypatch):
+    """Below --min-noise-ratio the CLI says so and writes the mesh as it read it, by that
+    decision alone: `enhance_mesh`, whose own gate measures again (in torch on a GPU), is not
+    run, so the two cannot fall either side of the line."""
+    import pipeline.enhance
+    from app.cli import app
+
+    def not_run(*args, **kwargs):
+        raise AssertionError("enhance_mesh ran on a clean mesh")
+
+    monkeypatch.setattr(pipeline.enhance, "enhance_mesh", not_run)
+    clean = sphere(0.5, 24)
+    src, dst = tmp_path / "in.ply", tmp_path / "out.ply"
+    write_ply(src, clean)
+    result = CliRunner().invoke(app, ["enhance-mesh", str(src), "--out", str(dst)])
+    assert result.exit_code == 0, result.output
+    assert "is below --min-noise-ratio 0.05: written unchanged" in result.output
+    np.testing.assert_array_equal(read_mesh(dst).vertices_m, read_mesh(src).vertices_m)
