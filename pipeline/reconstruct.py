@@ -263,7 +263,7 @@ def _stage_enhance(capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],
                    config: ReconstructConfig, progress: Progress | None,
                    networks: NetworksSource | None = None) -> Artifacts:
     from pipeline.enhance import enhance_mesh
-    from pipeline.enhance.enhancement import skipped_at
+    from pipeline.enhance.enhancement import past_the_gate, skipped_at
     from pipeline.enhance.noise_level import noise_to_edge_ratio
 
     mesh = mesh_from_artifacts(inputs)
@@ -272,7 +272,7 @@ def _stage_enhance(capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],
     skipped = skipped_at(noise_ratio, config.enhancement)
     # A clean mesh is left as `enhance_mesh` leaves it, without its networks (a fresh
     # worker's first load took 2.2 s) or its renders.
-    out = mesh if skipped else enhance_mesh(mesh, config.enhancement, progress,
+    out = mesh if skipped else enhance_mesh(mesh, past_the_gate(config.enhancement), progress,
                                             networks() if networks is not None else None)
     _tick(progress, 1.0)
     # The light remesh renumbers vertices: how far the surface moved is measured against

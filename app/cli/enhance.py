@@ -125,7 +125,7 @@ def enhance_mesh_command(
     from app.cli.paths import output_file
     from pipeline.enhance import EnhanceConfig, enhance_mesh
     from pipeline.enhance.config import validate_config
-    from pipeline.enhance.enhancement import gated, skipped_at
+    from pipeline.enhance.enhancement import gated, past_the_gate, skipped_at
     from pipeline.enhance.noise_level import noise_to_edge_ratio
     from pipeline.enhance.weights import DEFAULT_FILES
     from pipeline.io.gltf_io import write_mesh
@@ -180,9 +180,8 @@ def enhance_mesh_command(
             bar.n = int(fraction * 100)
             bar.refresh()
 
-        # As `enhance_mesh` leaves it, by the decision just told (its own gate measures
-        # again, in torch on a GPU, and could fall the other side of the line).
-        result = mesh if skipped else enhance_mesh(mesh, config, progress)
+        # By the decision just told, either way.
+        result = mesh if skipped else enhance_mesh(mesh, past_the_gate(config), progress)
         progress(1.0)
     write_mesh(out, result)
     typer.echo(f"wrote {out} ({result.vertex_count} vertices, {result.face_count} triangles, "

@@ -271,6 +271,13 @@ def skipped_at(noise_ratio: float, config: EnhanceConfig) -> bool:
     return gated(config) and noise_ratio < config.min_noise_ratio
 
 
+def past_the_gate(config: EnhanceConfig) -> EnhanceConfig:
+    """`config` for a mesh its caller has already measured past the noise gate
+    (`skipped_at`): `enhance_mesh` then neither measures the noise again nor decides
+    otherwise, on a GPU in torch, near the line."""
+    return replace(config, min_noise_ratio=0.0)
+
+
 LIGHT_REMESH_MAX_ADDED_OUTSIDE = 2e-4
 """The light remesh's kernel is dropped where it adds more than this share of faces outside
 the angle criteria. Under the benchmark's protocol as it was before long boundary edges were

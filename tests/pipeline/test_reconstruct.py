@@ -115,10 +115,13 @@ def test_unknown_stages_and_missing_inputs_are_value_errors(sphere_capture: Path
 
 
 def test_the_enhance_stage_asks_for_its_networks_only_where_it_enhances(
-        sphere_capture: Path,
-        whole_run: tuple[TriangleMesh, dict, list[str], list[float]]) -> None:
+        sphere_capture: Path, whole_run: tuple[TriangleMesh, dict, list[str], list[float]],
+        monkeypatch: pytest.MonkeyPatch) -> None:
     """A worker's kept networks (loading them took a fresh worker 2.2 s) are asked for only
-    where the mesh is noisy enough to enhance; a clean mesh comes back as it was."""
+    where the mesh is noisy enough to enhance; a clean mesh comes back as it was. The noise
+    is measured once a mesh, by the stage, not again by `enhance_mesh`'s gate."""
+    import pipeline.enhance.enhancement as enhancement_module
+    import pipeline.enhance.noise_level as noise_level
     from pipeline.enhance import EnhanceConfig
     from pipeline.enhance.data import noisy_along_normals
     from pipeline.enhance.networks import EnhanceNetworks, load_networks
@@ -131,6 +134,15 @@ def test_the_enhance_stage_asks_for_its_networks_only_where_it_enhances(
         asked.append(enhancement)
         return load_networks(enhancement)
 
+    measured: list[int] = []
+    measure = noise_level.noise_to_edge_ratio
+
+    def counted(*args, **kwargs) -> float:  # type: ignore[no-untyped-def]
+        measured.append(1)
+        return measure(*args, **kwargs)
+
+    monkeypatch.setattr(noise_level, "noise_to_edge_ratio", counted)
+    monkeypatch.setattr(enhancement_module, "noise_to_edge_ratio", counted)
     clean = whole_run[0]
     noisy = noisy_along_normals(clean, 0.01, np.random.default_rng(0))
     with open_capture(sphere_capture) as capture:
@@ -144,5 +156,6 @@ def test_the_enhance_stage_asks_for_its_networks_only_where_it_enhances(
         moved = run_stage("enhance", capture, {"vertices_m": noisy.vertices_m,
                                                "faces": noisy.faces}, config, None, networks)
     assert asked == [enhancement]
+    assert len(measured) == 2  # one a mesh
     assert json.loads(str(moved["stats_enhance"]))["skipped_as_clean"] is False
     assert not np.allclose(moved["vertices_m"], noisy.vertices_m)
