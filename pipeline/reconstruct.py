@@ -265,6 +265,7 @@ def _stage_enhance(capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],
     from pipeline.enhance import enhance_mesh
     from pipeline.enhance.enhancement import past_the_gate, skipped_at
     from pipeline.enhance.noise_level import noise_to_edge_ratio
+    from pipeline.enhance.self_check import SelfCheck
 
     mesh = mesh_from_artifacts(inputs)
     # Once for both figures and the gate (0.15 s on the bunny's 106 k vertices, 2 cores).
@@ -272,8 +273,10 @@ def _stage_enhance(capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],
     skipped = skipped_at(noise_ratio, config.enhancement)
     # A clean mesh is left as `enhance_mesh` leaves it, without its networks (a fresh
     # worker's first load took 2.2 s) or its renders.
+    checks: list[SelfCheck] = []
     out = mesh if skipped else enhance_mesh(mesh, past_the_gate(config.enhancement), progress,
-                                            networks() if networks is not None else None)
+                                            networks() if networks is not None else None,
+                                            checks.append)
     _tick(progress, 1.0)
     # The light remesh renumbers vertices: how far the surface moved is measured against
     # the surface before, not vertex by vertex (a clean mesh has not moved).
@@ -283,7 +286,8 @@ def _stage_enhance(capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],
         "method": config.enhancement.method, "views": config.enhancement.views,
         "noise_ratio": noise_ratio, "skipped_as_clean": skipped,
         "triangles": out.face_count, "mean_offset_m": float(offset_m.mean()),
-        "max_offset_m": float(offset_m.max())})
+        "max_offset_m": float(offset_m.max()),
+        "self_check": checks[0].as_stats() if checks else None})
 
 
 def _stage_colorize(capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],

@@ -10,6 +10,7 @@ import typer
 from app.cli import app
 from pipeline.enhance.bounded_noise import BoundedNoiseConfig
 from pipeline.enhance.normal_filter import NormalFilterConfig
+from pipeline.enhance.self_check import SelfCheck
 
 
 @app.command("enhance-mesh")
@@ -104,6 +105,16 @@ def enhance_mesh_command(
             "the update. Default: ahead on a GPU, after on the CPU.",
         ),
     ] = None,
+    self_check: Annotated[
+        bool,
+        typer.Option(
+            "--self-check/--no-self-check",
+            help="Before the networks' update, enhance a simulated copy of the mesh (the "
+            "classical result with the mesh's own noise shuffled back on) with and without "
+            "them, and keep the classical result where they lose there. About doubles the "
+            "time.",
+        ),
+    ] = False,
     seed: Annotated[int, typer.Option("--seed")] = 0,
     ensemble: Annotated[
         int, typer.Option("--ensemble", help="Flipped copies of each view averaged: 1|2|4|8.")
@@ -158,6 +169,7 @@ def enhance_mesh_command(
         correction_gain=EnhanceConfig.correction_gain if gain is None else gain,
         learned_gain=gain is None,
         min_noise_ratio=min_noise_ratio,
+        self_check=self_check,
         normal_filter=NormalFilterConfig(normal_iterations=normal_filter),
         remesh_ahead=remesh_ahead,
         device=device,
@@ -173,6 +185,7 @@ def enhance_mesh_command(
             f"edge length, is below --min-noise-ratio {min_noise_ratio}: written unchanged",
             err=True,
         )
+    checks: list[SelfCheck] = []
     started = time.perf_counter()
     with tqdm(total=100, desc="enhance", unit="%") as bar:
 
@@ -181,8 +194,20 @@ def enhance_mesh_command(
             bar.refresh()
 
         # By the decision just told, either way.
-        result = mesh if skipped else enhance_mesh(mesh, past_the_gate(config), progress)
+        result = mesh if skipped else enhance_mesh(mesh, past_the_gate(config), progress,
+                                                   on_check=checks.append)
         progress(1.0)
+    for check in checks:
+        typer.echo(_told(check), err=True)
     write_mesh(out, result)
     typer.echo(f"wrote {out} ({result.vertex_count} vertices, {result.face_count} triangles, "
                f"{out.stat().st_size} bytes; {method}, {time.perf_counter() - started:.1f} s)")
+
+
+def _told(check: SelfCheck) -> str:
+    """The self-check's decision and its figures, one line."""
+    kept = ("the networks' update kept" if check.networks_help else
+            "the classical result kept (the networks lost)")
+    return (f"enhance-mesh: self-check on a simulated copy: C2M RMS "
+            f"{check.with_networks_rms_m * 1e3:.4f} mm with the networks, "
+            f"{check.without_networks_rms_m * 1e3:.4f} mm without; {kept}")

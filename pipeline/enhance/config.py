@@ -82,6 +82,13 @@ class EnhanceConfig:
     0.053 and 0.044 with one fixed gain, 0.072 and 0.064
     with adaptive twicing, 0.11 and 0.14 with ten Laplacian iterations). A reconstruction of
     the synthetic bunny capture measures 0.01 (enhanced without the gate: 0.70 -> 0.86 mm)."""
+    self_check: bool = False
+    """Before the networks' update (ldm, regressor), check on a simulated copy of the mesh
+    whether they beat the same pipeline without them (`self_check.py`): the classical result
+    (the base, then the normal filter) with the mesh's own residuals from the base shuffled
+    back on, enhanced both ways and scored against it. Where the networks lose there, the
+    result is the classical one, light-remeshed. It costs one more pre-smoothing, render,
+    network pass and update. Off by default: on a GPU that is most of the time per mesh."""
     update: UpdateConfig = field(default_factory=UpdateConfig)
     """How vertices follow the enhanced depth."""
     normal_filter: NormalFilterConfig = field(default_factory=NormalFilterConfig)

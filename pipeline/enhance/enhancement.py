@@ -10,7 +10,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from pipeline.enhance.config import EnhanceConfig, validate_config
-from pipeline.enhance.networks import NETWORK_METHODS, EnhanceNetworks, selector_for
+from pipeline.enhance.networks import (
+    NETWORK_METHODS,
+    EnhanceNetworks,
+    load_networks,
+    selector_for,
+)
 from pipeline.enhance.noise_level import noise_to_edge_ratio
 from pipeline.enhance.normal_filter import normal_filter
 from pipeline.enhance.render import (
@@ -20,6 +25,7 @@ from pipeline.enhance.render import (
     render_depth,
     view_directions,
 )
+from pipeline.enhance.self_check import SelfCheck, scored, simulated_copy
 from pipeline.enhance.update import UpdateConfig, ViewSteps, apply_view_steps, view_steps
 from pipeline.mesh import TriangleMesh, mean_edge_length_m
 from pipeline.mesh_order import reordered, restored, spatial_order
@@ -45,13 +51,17 @@ def enhance_mesh(
     config: EnhanceConfig,
     progress: Callable[[float], None] | None = None,
     networks: EnhanceNetworks | None = None,
+    on_check: Callable[[SelfCheck], None] | None = None,
 ) -> TriangleMesh:
     """The mesh with vertices moved; the view-based methods end with a light remesh
     (``remesh_iterations``), the smoothers keep the connectivity. The networks return a mesh
-    less noisy than ``min_noise_ratio`` as it came (`skips_enhancement`).
+    less noisy than ``min_noise_ratio`` as it came (`skips_enhancement`), and with
+    ``self_check`` the classical result where they lose on a simulated copy (`self_check.py`;
+    `on_check` is told the figures).
 
     `networks`: the networks `config` runs, loaded beforehand (`networks.load_networks`) and
-    kept between meshes; None: loaded here, each as its stage begins."""
+    kept between meshes; None: loaded here, each as its stage begins (with ``self_check``,
+    once for both uses)."""
     from pipeline.enhance import baselines
     from pipeline.enhance.inference import selector_presmoothed
 
@@ -85,13 +95,17 @@ def enhance_mesh(
     # The light remesh's kernel children start now: their interpreters start and import
     # while the stages before the remesh run.
     pieces = kernel_piece_count(mesh.face_count, None) if config.remesh_iterations > 0 else 0
+    if config.self_check and networks is None and config.method in NETWORK_METHODS:
+        networks = load_networks(config)
     with kernel_children(pieces) as children:
-        return _enhanced_by_views(mesh, config, device, done, children, networks)
+        return _enhanced_by_views(mesh, config, device, done, children, networks,
+                                  on_check or (lambda check: None))
 
 
 def _enhanced_by_views(mesh: TriangleMesh, config: EnhanceConfig, device: str,
                        done: Callable[[str], None], children: Sequence[KernelChild],
-                       networks: EnhanceNetworks | None) -> TriangleMesh:
+                       networks: EnhanceNetworks | None,
+                       on_check: Callable[[SelfCheck], None]) -> TriangleMesh:
     """`enhance_mesh` of the view-based methods, the light remesh's kernel in `children`,
     the `networks` given (None: loaded as their stages begin)."""
     from pipeline.enhance.device import accelerator
@@ -116,6 +130,13 @@ def _enhanced_by_views(mesh: TriangleMesh, config: EnhanceConfig, device: str,
             return mesh
         inputs = update_inputs(ordered, config, device, done, renders, networks)
     done("presmooth")
+    if config.self_check and config.method in NETWORK_METHODS:
+        classical = normal_filter(inputs.base, config.normal_filter, device)
+        check = _self_checked(ordered, inputs, classical, config, device, networks)
+        on_check(check)
+        if not check.networks_help:
+            return (restored(classical, order) if config.remesh_iterations == 0 else
+                    light_remesh(classical, config.remesh_iterations, children))
     if config.remesh_iterations == 0:  # the output keeps the input's order
         return restored(_updated(ordered, inputs, config, device, done, networks), order)
     result = (_updated_remeshed_ahead(ordered, inputs, config, device, done, children,
@@ -126,6 +147,19 @@ def _enhanced_by_views(mesh: TriangleMesh, config: EnhanceConfig, device: str,
                            config.remesh_iterations, children))
     done("remesh")
     return result
+
+
+def _self_checked(ordered: TriangleMesh, inputs: UpdateInputs, classical: TriangleMesh,
+                  config: EnhanceConfig, device: str, networks: EnhanceNetworks | None
+                  ) -> SelfCheck:
+    """The networks' update and the `classical` ending (the base, then the normal filter)
+    compared on a copy of `classical` as noisy as the mesh (`self_check.simulated_copy`),
+    pre-smoothed and enhanced as the mesh is."""
+    copy = simulated_copy(ordered, inputs.base, classical, config.seed)
+    copy_inputs = update_inputs(copy, config, device, networks=networks)
+    without_networks = normal_filter(copy_inputs.base, config.normal_filter, device)
+    with_networks = _updated(copy, copy_inputs, config, device, lambda stage: None, networks)
+    return scored(without_networks, with_networks, classical)
 
 
 def remeshes_ahead(config: EnhanceConfig) -> bool:

@@ -159,3 +159,28 @@ def test_the_enhance_stage_asks_for_its_networks_only_where_it_enhances(
     assert len(measured) == 2  # one a mesh
     assert json.loads(str(moved["stats_enhance"]))["skipped_as_clean"] is False
     assert not np.allclose(moved["vertices_m"], noisy.vertices_m)
+
+
+def test_the_enhance_stage_reports_its_self_check(
+        sphere_capture: Path, whole_run: tuple[TriangleMesh, dict, list[str], list[float]]
+) -> None:
+    """With `self_check` on, the stage's figures tell the check's decision and its two
+    scores; off, they say there was none."""
+    from pipeline.enhance import EnhanceConfig
+    from pipeline.enhance.data import noisy_along_normals
+
+    noisy = noisy_along_normals(whole_run[0], 0.01, np.random.default_rng(0))
+    artifacts = {"vertices_m": noisy.vertices_m, "faces": noisy.faces}
+    stats = {}
+    for checked in (True, False):
+        enhancement = EnhanceConfig(method="regressor", resolution=32, remesh_iterations=0,
+                                    self_check=checked)
+        config = dataclasses.replace(ReconstructConfig(), enhancement=enhancement)
+        with open_capture(sphere_capture) as capture:
+            out = run_stage("enhance", capture, artifacts, config, None)
+        stats[checked] = json.loads(str(out["stats_enhance"]))["self_check"]
+    assert stats[False] is None
+    check = stats[True]
+    assert check["networks_help"] == (check["with_networks_rms_mm"]
+                                      < check["without_networks_rms_mm"])
+    assert 0 < check["without_networks_rms_mm"] < 10

@@ -173,3 +173,25 @@ def test_a_clean_mesh_is_written_unchanged_by_the_decision_told(tmp_path, monkey
     assert result.exit_code == 0, result.output
     assert "is below --min-noise-ratio 0.05: written unchanged" in result.output
     np.testing.assert_array_equal(read_mesh(dst).vertices_m, read_mesh(src).vertices_m)
+
+
+def test_the_self_check_tells_its_decision(tmp_path):
+    """`--self-check` says what it measured on the simulated copy and which result it kept;
+    without it nothing of the kind is said."""
+    from app.cli import app
+    from pipeline.enhance.data import noisy_along_normals
+
+    src = tmp_path / "noisy.ply"
+    write_ply(src, noisy_along_normals(sphere(), 0.01, np.random.default_rng(0)))
+
+    def said(*options: str) -> str:
+        result = CliRunner().invoke(app, [
+            "enhance-mesh", str(src), "--out", str(tmp_path / "out.ply"), "--method",
+            "regressor", "--resolution", "64", "--min-noise-ratio", "0", *options])
+        assert result.exit_code == 0, result.output
+        return result.output
+
+    told = [line for line in said("--self-check").splitlines() if "self-check" in line]
+    assert len(told) == 1
+    assert "mm with the networks" in told[0] and " kept" in told[0]
+    assert "self-check" not in said()

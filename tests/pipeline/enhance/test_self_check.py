@@ -1,0 +1,135 @@
+"""The self-check: a simulated copy of the mesh, as noisy as it, decides whether the
+networks' update is kept."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from pipeline.enhance import EnhanceConfig, enhance_mesh
+from pipeline.enhance.normal_filter import normal_filter
+from pipeline.enhance.self_check import (
+    SelfCheck,
+    residuals_m,
+    scored,
+    simulated_copy,
+)
+from pipeline.mesh import TriangleMesh, vertex_normals
+from tests.pipeline.enhance.conftest import sphere
+
+SPHERE = sphere(resolution=12)
+
+
+def _moved_along_normals(mesh: TriangleMesh, offsets_m: np.ndarray) -> TriangleMesh:
+    normals = vertex_normals(mesh.vertices_m, mesh.faces).astype(np.float64)
+    return mesh.with_vertices(mesh.vertices_m + normals * offsets_m[:, None])
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.floats(1e-4, 0.05))
+def test_the_residuals_are_the_offsets_along_the_bases_normals(seed: int, amplitude_m: float
+                                                              ) -> None:
+    offsets_m = np.random.default_rng(seed).uniform(-amplitude_m, amplitude_m,
+                                                    SPHERE.vertex_count)
+    noisy = _moved_along_normals(SPHERE, offsets_m)
+    assert np.allclose(residuals_m(noisy, SPHERE), offsets_m, atol=1e-7)
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(0, 2**32 - 1))
+def test_the_copy_carries_the_same_residuals_shuffled(noise_seed: int, seed: int) -> None:
+    """The copy's noise has the input's distribution exactly (the same values), on the
+    truth's surface, and the seed alone decides where each value goes."""
+    offsets_m = np.random.default_rng(noise_seed).uniform(-0.01, 0.01, SPHERE.vertex_count)
+    noisy = _moved_along_normals(SPHERE, offsets_m)
+    truth = SPHERE.with_vertices(SPHERE.vertices_m * 1.1)
+    copy = simulated_copy(noisy, SPHERE, truth, seed)
+    assert np.array_equal(copy.faces, truth.faces)
+    copied_m = residuals_m(copy, truth)
+    assert np.allclose(np.sort(copied_m), np.sort(offsets_m), atol=1e-7)
+    assert not np.allclose(copied_m, offsets_m)
+    assert np.array_equal(simulated_copy(noisy, SPHERE, truth, seed).vertices_m, copy.vertices_m)
+    other = simulated_copy(noisy, SPHERE, truth, seed + 1)
+    assert not np.array_equal(other.vertices_m, copy.vertices_m)
+
+
+def test_the_nearer_result_wins() -> None:
+    noisy = _moved_along_normals(SPHERE, np.full(SPHERE.vertex_count, 0.002))
+    nearer = _moved_along_normals(SPHERE, np.full(SPHERE.vertex_count, 0.001))
+    check = scored(noisy, nearer, SPHERE)
+    assert check.networks_help
+    assert check.with_networks_rms_m < check.without_networks_rms_m
+    assert scored(nearer, noisy, SPHERE).networks_help is False
+    assert SelfCheck(1e-3, 1e-3).networks_help is False  # a tie keeps the classical result
+    assert scored(SPHERE, SPHERE, SPHERE).with_networks_rms_m < 1e-7  # float32 ray casting
+
+
+def _harmful_regressor() -> bytes:
+    """The shipped regressor with its corrections turned round and tripled: a network that
+    makes every mesh worse."""
+    import torch
+
+    from pipeline.enhance.loading import load_regressor, regressor_to_bytes
+    from pipeline.enhance.weights import shipped_bytes
+
+    model = load_regressor(shipped_bytes("regressor"))
+    with torch.no_grad():
+        for name, p in model.named_parameters():
+            if "conv_out" in name:
+                p.mul_(-3.0)
+    return regressor_to_bytes(model)
+
+
+def _classical(noisy: TriangleMesh, config: EnhanceConfig) -> TriangleMesh:
+    """The selector's base, then the normal filter, in the spatial order the stages use (the
+    selector's blend differs by up to 6e-5 m in another order)."""
+    from pipeline.mesh_order import reordered, restored, spatial_order
+
+    order = spatial_order(noisy)
+    base = enhance_mesh(reordered(noisy, order), replace(config, method="selector"))
+    return restored(normal_filter(base, config.normal_filter), order)
+
+
+@pytest.mark.parametrize("harmful", [True, False], ids=["harmful", "shipped"])
+def test_the_self_check_keeps_the_networks_update_only_where_it_wins_on_the_copy(
+        noisy_sphere: tuple[TriangleMesh, TriangleMesh], harmful: bool) -> None:
+    """A regressor that harms is caught and the classical result comes back; the mesh is
+    always the result of the branch the check chose."""
+    clean, noisy = noisy_sphere
+    config = EnhanceConfig(method="regressor", resolution=96, remesh_iterations=0,
+                           min_noise_ratio=0.0,
+                           weights={"regressor": _harmful_regressor()} if harmful else None)
+    checks: list[SelfCheck] = []
+    result = enhance_mesh(noisy, replace(config, self_check=True), on_check=checks.append)
+    assert len(checks) == 1
+    check = checks[0]
+    assert 0 < check.without_networks_rms_m < 0.01 and 0 < check.with_networks_rms_m < 0.05
+    unchecked = enhance_mesh(noisy, config)
+    classical = _classical(noisy, config)
+    chosen = unchecked if check.networks_help else classical
+    assert np.allclose(result.vertices_m, chosen.vertices_m, atol=1e-9)
+    if harmful:
+        assert not check.networks_help
+        # It was right to: the harmful update is further from the truth.
+        assert _rms_to_truth(unchecked, clean) > _rms_to_truth(classical, clean)
+
+
+def _rms_to_truth(mesh: TriangleMesh, truth: TriangleMesh) -> float:
+    from pipeline.enhance.self_check import rms_to_m
+
+    return rms_to_m(mesh, truth)
+
+
+def test_without_the_self_check_nothing_is_told(
+        noisy_sphere: tuple[TriangleMesh, TriangleMesh]) -> None:
+    _, noisy = noisy_sphere
+    checks: list[SelfCheck] = []
+    enhance_mesh(noisy, EnhanceConfig(method="regressor", resolution=32, remesh_iterations=0,
+                                      min_noise_ratio=0.0), on_check=checks.append)
+    enhance_mesh(noisy, EnhanceConfig(method="laplacian", self_check=True),
+                 on_check=checks.append)
+    assert checks == []
