@@ -64,5 +64,10 @@ def rms_to_m(mesh: TriangleMesh, truth: TriangleMesh) -> float:
 
 def scored(without_networks: TriangleMesh, with_networks: TriangleMesh, truth: TriangleMesh
            ) -> SelfCheck:
-    """The copy's two results scored against its truth."""
-    return SelfCheck(rms_to_m(without_networks, truth), rms_to_m(with_networks, truth))
+    """The copy's two results scored against its truth, both in one query of its surface
+    (building that twice took 0.1 s of the bunny's check on 2 cores)."""
+    points_m = np.concatenate([without_networks.vertices_m, with_networks.vertices_m])
+    squared = signed_distances_m(points_m, truth) ** 2
+    split = without_networks.vertex_count
+    return SelfCheck(float(np.sqrt(squared[:split].mean())),
+                     float(np.sqrt(squared[split:].mean())))
