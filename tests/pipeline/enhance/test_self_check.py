@@ -11,6 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pipeline.enhance import EnhanceConfig, enhance_mesh
+from pipeline.enhance.enhancement import CHECKED_STAGE_PROGRESS
 from pipeline.enhance.normal_filter import normal_filter
 from pipeline.enhance.self_check import (
     SelfCheck,
@@ -104,8 +105,14 @@ def test_the_self_check_keeps_the_networks_update_only_where_it_wins_on_the_copy
                            min_noise_ratio=0.0,
                            weights={"regressor": _harmful_regressor()} if harmful else None)
     checks: list[SelfCheck] = []
-    result = enhance_mesh(noisy, replace(config, self_check=True), on_check=checks.append)
+    reported: list[float] = []
+    result = enhance_mesh(noisy, replace(config, self_check=True), reported.append,
+                          on_check=checks.append)
     assert len(checks) == 1
+    # Live progress through the check, in order, to the end whichever result is kept.
+    stages = ["render", "presmooth", "check"] + (
+        ["network", "update", "remesh"] if checks[0].networks_help else ["remesh"])
+    assert reported == [CHECKED_STAGE_PROGRESS[s] for s in stages]
     check = checks[0]
     assert 0 < check.without_networks_rms_m < 0.01 and 0 < check.with_networks_rms_m < 0.05
     unchecked = enhance_mesh(noisy, config)
