@@ -39,6 +39,7 @@ from pipeline.enhance import EnhanceConfig, enhance_mesh  # noqa: E402
 from pipeline.enhance.bounded_noise import BoundedNoiseConfig  # noqa: E402
 from pipeline.enhance.data import DataConfig, noisy_along_normals  # noqa: E402
 from pipeline.enhance.enhancement import (  # noqa: E402
+    CHECKED_STAGE_PROGRESS,
     STAGE_PROGRESS,
     light_remesh,
     light_remesh_config,
@@ -336,7 +337,8 @@ def perf_child(args) -> None:
     the networks are loaded before the warm-up and both calls are given them
     (`networks.load_networks`), as a worker keeps them between jobs; `loaded`: each call
     loads its own. `--min-piece-faces` sets `remesh.MIN_PIECE_FACES` for both calls, to
-    time another piece count on the device machine's cores."""
+    time another piece count on the device machine's cores; `--self-check` turns the
+    self-check on (its stage is "check")."""
     import pipeline.remesh
 
     if args.min_piece_faces is not None:
@@ -348,6 +350,7 @@ def perf_child(args) -> None:
         method="ldm", views=args.views, resolution=args.resolution, steps=args.steps,
         remesh_iterations=args.remesh_iterations, device=args.device, weights=weights,
         remesh_ahead={"auto": None, "ahead": True, "after": False}[args.remesh],
+        self_check=args.self_check,
     )
     networks = load_networks(cfg) if args.networks == "kept" else None
     enhance_mesh(noisy, cfg if args.warm_up == "full" else replace(cfg, resolution=32),
@@ -355,13 +358,15 @@ def perf_child(args) -> None:
     remesh_stats: dict = {}
     _recording_remesh_stats(remesh_stats)
     base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    stage_of = {share: stage for stage, share in STAGE_PROGRESS.items()}
+    shares = CHECKED_STAGE_PROGRESS if args.self_check else STAGE_PROGRESS
+    stage_of = {share: stage for stage, share in shares.items()}
+    checks: list = []
     ends = [("start", time.perf_counter())]
     profiler = cProfile.Profile() if args.profile else None
     if profiler:
         profiler.enable()
     enhance_mesh(noisy, cfg, lambda share: ends.append((stage_of[share], time.perf_counter())),
-                 networks)
+                 networks, checks.append)
     if profiler:
         profiler.disable()
         with open(args.profile, "w") as f:
@@ -375,6 +380,8 @@ def perf_child(args) -> None:
         "device": args.device,
         "remesh_iterations": args.remesh_iterations, "warm_up": args.warm_up,
         "networks": args.networks,
+        "self_checked": args.self_check,
+        "self_check": checks[0].as_stats() if checks else None,
         "kernel_pieces": (pipeline.remesh.kernel_piece_count(noisy.face_count, None)
                           if args.remesh_iterations else 0),
         "remesh_call_seconds": remesh_stats.get("seconds"),
@@ -431,6 +438,8 @@ def main() -> None:
     ap.add_argument("--min-piece-faces", type=int, default=None,
                     help="with --perf-child: the light remesh's kernel pieces have at least this "
                     "many faces (`remesh.MIN_PIECE_FACES`; fewer: more pieces, up to one a core)")
+    ap.add_argument("--self-check", action="store_true",
+                    help="with --perf-child: the self-check on (`EnhanceConfig.self_check`)")
     ap.add_argument("--edge-mm", type=float, default=5.0,
                     help="the protocol's edge length, mm (finer: a larger mesh, for timings)")
     ap.add_argument("--steps", type=int, default=4, help=argparse.SUPPRESS)
