@@ -16,6 +16,7 @@ def test_the_gateways_copy_is_the_pipelines() -> None:
 @pytest.mark.parametrize("section, values", [
     ("enhancement", {"method": "regressor", "views": 14, "strength": 1,
                      "presmooth_learned": False}),
+    ("enhancement", {"self_check": True}),
     ("meshing", {"poisson_depth": 7}),
     ("colorize", {"fallback_rgb": [1, 2, 3]}),
 ])
@@ -30,6 +31,7 @@ def test_what_the_gateway_accepts_the_worker_accepts(section: str, values: dict)
     ("enhancement", {"views": True}, "enhancement.views"),
     ("enhancement", {"strength": "high"}, "enhancement.strength"),
     ("enhancement", {"update": 1}, "enhancement.update"),
+    ("enhancement", {"self_check": "yes"}, "enhancement.self_check"),
     ("remesh", {"target_edge_length_m": [0.01]}, "remesh.target_edge_length_m"),
 ])
 def test_what_the_gateway_refuses_the_worker_refuses_by_the_same_name(
