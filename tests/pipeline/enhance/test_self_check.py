@@ -140,3 +140,44 @@ def test_without_the_self_check_nothing_is_told(
     enhance_mesh(noisy, EnhanceConfig(method="laplacian", self_check=True),
                  on_check=checks.append)
     assert checks == []
+
+
+@pytest.mark.parametrize("harmful", [True, False], ids=["harmful", "shipped"])
+def test_the_accelerator_path_checks_as_the_cpu_path_does(
+        noisy_sphere: tuple[TriangleMesh, TriangleMesh], monkeypatch: pytest.MonkeyPatch,
+        harmful: bool) -> None:
+    """On a GPU the check's stages run in torch there and the light remesh starts ahead (the
+    default there): forced onto the CPU, the same decision and the host path's mesh."""
+    import pipeline.enhance.device as device
+
+    _, noisy = noisy_sphere
+    config = EnhanceConfig(method="regressor", resolution=96, device="cpu", remesh_ahead=True,
+                           min_noise_ratio=0.0, self_check=True,
+                           weights={"regressor": _harmful_regressor()} if harmful else None)
+    host_checks: list[SelfCheck] = []
+    host = enhance_mesh(noisy, config, on_check=host_checks.append)
+    monkeypatch.setattr(device, "accelerator", lambda name: name)
+    there_checks: list[SelfCheck] = []
+    there = enhance_mesh(noisy, config, on_check=there_checks.append)
+    assert there_checks[0].networks_help == host_checks[0].networks_help == (not harmful)
+    assert there_checks[0].with_networks_rms_m == pytest.approx(
+        host_checks[0].with_networks_rms_m, rel=1e-4)
+    assert host.face_count != noisy.face_count  # remeshed either way
+    np.testing.assert_array_equal(there.faces, host.faces)
+    np.testing.assert_allclose(there.vertices_m, host.vertices_m, rtol=0, atol=1e-7)
+
+
+@pytest.mark.skipif(not __import__("torch").cuda.is_available(), reason="no CUDA device")
+def test_the_cuda_path_checks_as_the_cpu_path_does(
+        noisy_sphere: tuple[TriangleMesh, TriangleMesh]) -> None:
+    """The harmful regressor: a margin no float32 kernel can turn round."""
+    _, noisy = noisy_sphere
+    config = EnhanceConfig(method="regressor", resolution=96, remesh_iterations=0,
+                           min_noise_ratio=0.0, self_check=True,
+                           weights={"regressor": _harmful_regressor()})
+    results, checks = [], []
+    for name in ("cpu", "cuda"):
+        results.append(enhance_mesh(noisy, replace(config, device=name),
+                                    on_check=checks.append))
+    assert not checks[0].networks_help and not checks[1].networks_help
+    np.testing.assert_allclose(results[1].vertices_m, results[0].vertices_m, rtol=0, atol=1e-5)
