@@ -1,7 +1,7 @@
 """The self-check (`EnhanceConfig.self_check`) under issue 4's protocol; prints JSON.
 
     .venv/bin/python benchmarks/enhance_self_check.py [--meshes DIR] [--mesh NAME|FILE ...]
-        [--method ldm|regressor]
+        [--method ldm|regressor] [--seed N]
 
 For each mesh (by default every protocol mesh in the folder, the bunny included): the
 classical ending with no network (the selector, the refinement, the normal filter and the
@@ -37,8 +37,8 @@ from pipeline.enhance import EnhanceConfig, enhance_mesh  # noqa: E402
 from pipeline.enhance.self_check import SelfCheck  # noqa: E402
 
 
-def mesh_row(meshes: Path, name: str, method: str) -> dict:
-    truth, noisy = bunny_protocol(meshes, 0, name=name)
+def mesh_row(meshes: Path, name: str, method: str, seed: int = 0) -> dict:
+    truth, noisy = bunny_protocol(meshes, seed, name=name)
     config = EnhanceConfig(method=method)
     classical = selector_same_ending(noisy, truth, config)["c2m_rms_mm"]
     networks = run_method(noisy, truth, config)
@@ -72,17 +72,18 @@ def main() -> None:
     ap.add_argument("--meshes", default=str(ROOT.parent / "shared" / "data" / "meshes"))
     ap.add_argument("--mesh", action="append", help="a name in --meshes or a mesh file")
     ap.add_argument("--method", default="ldm", choices=("ldm", "regressor"))
+    ap.add_argument("--seed", type=int, default=0, help="the protocol's noise seed")
     args = ap.parse_args()
     meshes = Path(args.meshes)
     rows: dict = {}
     for name in args.mesh or protocol_mesh_names(meshes):
         try:
-            rows[name] = mesh_row(meshes, name, args.method)
+            rows[name] = mesh_row(meshes, name, args.method, args.seed)
         except ValueError as exc:  # the protocol's remesher refuses the input
             rows[name] = {"error": str(exc)}
         print(name, json.dumps(rows[name]), file=sys.stderr, flush=True)
     scored = {n: r for n, r in rows.items() if "error" not in r}
-    print(json.dumps({"method": args.method, "meshes": rows, "summary": {
+    print(json.dumps({"method": args.method, "seed": args.seed, "meshes": rows, "summary": {
         "scored": len(scored),
         "chose_right": sorted(n for n, r in scored.items() if r["chose_right"]),
         "chose_wrong": sorted(n for n, r in scored.items() if not r["chose_right"]),
