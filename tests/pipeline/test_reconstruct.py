@@ -184,3 +184,14 @@ def test_the_enhance_stage_reports_its_self_check(
     assert check["networks_help"] == (check["with_networks_rms_mm"]
                                       < check["without_networks_rms_mm"])
     assert 0 < check["without_networks_rms_mm"] < 10
+
+
+def test_a_capture_reconstructs_to_the_same_mesh_each_time(
+        sphere_capture: Path, whole_run: tuple[TriangleMesh, dict, list[str], list[float]]
+) -> None:
+    """The report's config hash names one mesh: every stage is deterministic, the Poisson
+    solve on one thread (`MeshingConfig.poisson_threads`)."""
+    with open_capture(sphere_capture) as capture:
+        again, _ = reconstruct(capture, ReconstructConfig())
+    assert np.array_equal(again.faces, whole_run[0].faces)
+    assert np.array_equal(again.vertices_m, whole_run[0].vertices_m)
