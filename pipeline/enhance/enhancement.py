@@ -93,7 +93,7 @@ def enhance_mesh(
         selector = selector_for(config, networks)
         return selector_presmoothed(mesh, selector, config.bounded_noise, device)
 
-    shares = CHECKED_STAGE_PROGRESS if config.self_check else STAGE_PROGRESS
+    shares = CHECKED_STAGE_PROGRESS if self_checks(config) else STAGE_PROGRESS
 
     def done(stage: str) -> None:
         if progress is not None:
@@ -102,7 +102,7 @@ def enhance_mesh(
     # The light remesh's kernel children start now: their interpreters start and import
     # while the stages before the remesh run.
     pieces = kernel_piece_count(mesh.face_count, None) if config.remesh_iterations > 0 else 0
-    if config.self_check and networks is None and config.method in NETWORK_METHODS:
+    if self_checks(config) and networks is None:
         networks = load_networks(config)
     with kernel_children(pieces) as children:
         return _enhanced_by_views(mesh, config, device, done, children, networks,
@@ -137,7 +137,7 @@ def _enhanced_by_views(mesh: TriangleMesh, config: EnhanceConfig, device: str,
             return mesh
         inputs = update_inputs(ordered, config, device, done, renders, networks)
     done("presmooth")
-    if config.self_check and config.method in NETWORK_METHODS:
+    if self_checks(config):
         classical = normal_filter(inputs.base, config.normal_filter, device)
         check = _self_checked(ordered, inputs, classical, config, device, networks)
         on_check(check)
@@ -159,6 +159,11 @@ def _enhanced_by_views(mesh: TriangleMesh, config: EnhanceConfig, device: str,
                            config.remesh_iterations, children))
     done("remesh")
     return result
+
+
+def self_checks(config: EnhanceConfig) -> bool:
+    """Whether `enhance_mesh` runs the self-check: ``self_check`` on a network method."""
+    return config.self_check and config.method in NETWORK_METHODS
 
 
 def _self_checked(ordered: TriangleMesh, inputs: UpdateInputs, classical: TriangleMesh,

@@ -58,11 +58,6 @@ def simulated_copy(mesh: TriangleMesh, base: TriangleMesh, truth: TriangleMesh, 
     return truth.with_vertices(truth.vertices_m + normals * offsets_m[:, None])
 
 
-def rms_to_m(mesh: TriangleMesh, truth: TriangleMesh) -> float:
-    """C2M RMS of `mesh`'s vertices to the surface of `truth`, metres."""
-    return float(np.sqrt(np.mean(signed_distances_m(mesh.vertices_m, truth) ** 2)))
-
-
 def scored(without_networks: TriangleMesh, with_networks: TriangleMesh, truth: TriangleMesh
            ) -> SelfCheck:
     """The copy's two results scored against its truth, both in one query of its surface
