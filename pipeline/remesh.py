@@ -22,7 +22,7 @@ import numpy as np
 from pipeline.angle_cleanup import enforce_angles
 from pipeline.boundary_split import split_boundary_edges
 from pipeline.mesh import TriangleMesh
-from pipeline.mesh_order import in_spatial_order
+from pipeline.mesh_order import corners_reordered, in_spatial_order
 from pipeline.mesh_repair import repair, row_max, row_min, triangle_angles_deg
 from pipeline.remesh_kernel import (
     Faces,
@@ -275,8 +275,8 @@ def cleaned_up(vertices_m: FloatArray, faces: Faces, config: RemeshConfig,
     angles = triangle_angles_deg(vertices_m, faces) if angles is None else angles
     stats["angles_before_cleanup"] = angle_figures(angles, config)
     if not in_order:
-        vertices_m, faces, face_order = in_spatial_order(vertices_m, faces)
-        angles = angles[face_order]
+        vertices_m, faces, order = in_spatial_order(vertices_m, faces)
+        angles = corners_reordered(angles, order)
     vertices_m, faces, angles, stats["angle_cleanup"] = enforce_angles(
         vertices_m, faces, angles, config.min_angle_deg, config.max_angle_deg,
         config.cleanup_passes)

@@ -90,8 +90,12 @@ def enhance_mesh(
 
     device = resolve_device(config.device).type
     if config.method == "selector":
+        # In the canonical order, as the view methods run, so that the result does not
+        # depend on how the input lists its vertices and faces.
+        order = spatial_order(mesh)
         selector = selector_for(config, networks)
-        return selector_presmoothed(mesh, selector, config.bounded_noise, device)
+        return restored(selector_presmoothed(reordered(mesh, order), selector,
+                                             config.bounded_noise, device), order)
 
     shares = CHECKED_STAGE_PROGRESS if self_checks(config) else STAGE_PROGRESS
 
@@ -118,6 +122,8 @@ def _enhanced_by_views(mesh: TriangleMesh, config: EnhanceConfig, device: str,
     from pipeline.enhance.device import accelerator
 
     # The stages gather neighbours all over the mesh; in a spatial order they hit the cache.
+    # The order is canonical, so the result depends on the surface alone, not on how the
+    # input lists its vertices and faces.
     order = spatial_order(mesh)
     ordered = reordered(mesh, order)
     # The noise gate (numpy) runs beside the render (open3d), both free of the GIL in their
@@ -125,7 +131,7 @@ def _enhanced_by_views(mesh: TriangleMesh, config: EnhanceConfig, device: str,
     # threads' torch ops each ask for every core (bunny 5.2-6.2 s against 4.9-5.1 s).
     ahead = config.remesh_iterations > 0 and remeshes_ahead(config)
     with ThreadPoolExecutor(max_workers=1) as pool:
-        gate = pool.submit(skips_enhancement, mesh, config, device)
+        gate = pool.submit(skips_enhancement, ordered, config, device)
         # The update keeps the faces: the remesh ahead reads what they need beside the render
         # and the pre-smoothing (waited for at the render's end, they took the device host's
         # render from 0.05 to 0.21-0.23 s).
@@ -337,6 +343,11 @@ a few faces) or none, where it helped. Under the protocol now it keeps the kerne
 where it does harm (1.0123 -> 1.0265 mm); not re-tuned on the benchmark's meshes:
 `LIGHT_REMESH_MAX_LOST_EDGES` drops it there."""
 
+LIGHT_REMESH_GRID_M = 2.0**-32
+"""The grid `light_remesh` snaps vertices to, metres (0.23 nm): far below any mesh's detail,
+far above float64's rounding of coordinates of a few metres (4e-16 m at 1 m), and exact
+(a power of two) for coordinates below 2^21 m."""
+
 LIGHT_REMESH_MAX_LOST_EDGES = 2.0
 """The light remesh's kernel is dropped where an input vertex ends up further than this many
 edge lengths from every vertex of its result (`remesh.surface_lost_edges`). On the LDM's updates
@@ -358,8 +369,20 @@ def light_remesh(mesh: TriangleMesh, iterations: int, children: Sequence[KernelC
     spatial pieces side by side, one per core (`remesh_pieces`): at the mesh's own edge
     length the held cuts cost nothing measurable (the bunny's LDM update 0.66126 against
     0.66128 mm), and on 2 cores two pieces take 10-15 % off the light remesh
-    (`benchmarks/remesh_speed.py`)."""
+    (`benchmarks/remesh_speed.py`).
+
+    The mesh is first snapped to a grid of `LIGHT_REMESH_GRID_M`: the kernel compares edge
+    lengths with each other and with the target, and where a mesh has edges of equal length
+    (a symmetric one) a difference of rounding alone, such as a GPU's float64 sums against
+    the host's (1e-15 m on the tests' sphere), chose other flips and gave another mesh."""
+    mesh = on_light_remesh_grid(mesh)
     return remesh(mesh, light_remesh_config(mesh, iterations), children)[0]
+
+
+def on_light_remesh_grid(mesh: TriangleMesh) -> TriangleMesh:
+    """`mesh` with its vertices snapped to `LIGHT_REMESH_GRID_M`."""
+    return replace(mesh, vertices_m=np.round(mesh.vertices_m / LIGHT_REMESH_GRID_M)
+                   * LIGHT_REMESH_GRID_M)
 
 
 def light_remesh_config(mesh: TriangleMesh, iterations: int) -> RemeshConfig:

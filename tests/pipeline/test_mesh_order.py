@@ -3,7 +3,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pipeline.mesh import TriangleMesh
-from pipeline.mesh_order import morton_codes, reordered, restored, spatial_order
+from pipeline.mesh_order import (
+    MeshOrder,
+    corners_reordered,
+    in_spatial_order,
+    morton_codes,
+    reordered,
+    restored,
+    spatial_order,
+)
 from tests.pipeline.enhance.test_boundary import grid
 
 
@@ -17,12 +25,10 @@ def _random_mesh(seed: int, vertex_count: int, face_count: int) -> TriangleMesh:
 
 
 def _corner_positions(mesh: TriangleMesh) -> set[tuple[float, ...]]:
-    """Each face as its corners' coordinates, its winding kept (rotated to start lowest)."""
-    out = set()
-    for corners in mesh.vertices_m[mesh.faces]:
-        start = min(range(3), key=lambda c: tuple(corners[c]))
-        out.add(tuple(np.roll(corners, -start, axis=0).ravel()))
-    return out
+    """Each face as its corners' coordinates, its winding kept (its least rotation, which is
+    one for a face that repeats a vertex, too)."""
+    return {min(tuple(np.roll(corners, -start, axis=0).ravel()) for start in range(3))
+            for corners in mesh.vertices_m[mesh.faces]}
 
 
 @settings(max_examples=30, deadline=None)
@@ -43,6 +49,44 @@ def test_reordering_keeps_the_surface_and_restoring_undoes_it(
     back = restored(moved, order)
     for name in ("vertices_m", "faces", "vertex_colors", "vertex_normals"):
         assert np.array_equal(getattr(back, name), getattr(mesh, name))
+
+
+def _listed_otherwise(mesh: TriangleMesh, seed: int) -> TriangleMesh:
+    """The same mesh with its vertices and faces listed in another order, and each face
+    starting at another corner (its winding kept)."""
+    rng = np.random.default_rng(seed)
+    return reordered(mesh, MeshOrder(vertex_order=rng.permutation(mesh.vertex_count),
+                                     face_order=rng.permutation(mesh.face_count),
+                                     face_start=rng.integers(0, 3, mesh.face_count)))
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), vertex_count=st.integers(3, 60),
+       face_count=st.integers(1, 80), other=st.integers(0, 2**31 - 1))
+def test_the_order_depends_on_the_surface_not_on_how_it_is_listed(
+        seed: int, vertex_count: int, face_count: int, other: int) -> None:
+    # Random faces repeat vertices and whole faces too: those are canonical as well.
+    mesh = _random_mesh(seed, vertex_count, face_count)
+    listed = _listed_otherwise(mesh, other)
+    a, b = reordered(mesh, spatial_order(mesh)), reordered(listed, spatial_order(listed))
+    for name in ("vertices_m", "faces", "vertex_colors", "vertex_normals"):
+        assert np.array_equal(getattr(a, name), getattr(b, name))
+    assert a.faces.dtype == np.int32
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), count=st.integers(2, 30))
+def test_vertices_sharing_a_cell_are_ordered_by_their_coordinates(seed: int, count: int) -> None:
+    rng = np.random.default_rng(seed)
+    # A cloud a metre across whose first `count` points lie within 1e-9 m of one another:
+    # one cell even of the finest (21-bit) grid, so the codes tie.
+    cluster = 0.25 + rng.uniform(0, 1e-9, (count, 3))
+    points = np.vstack([cluster, rng.uniform(0, 1, (20, 3)), [[0, 0, 0], [1, 1, 1]]])
+    assert len(np.unique(morton_codes(points, 21)[:count])) == 1
+    mesh = TriangleMesh(vertices_m=points, faces=np.array([[0, 1, count]], np.int32))
+    ordered = reordered(mesh, spatial_order(mesh)).vertices_m
+    in_cluster = ordered[np.isin(ordered, cluster).all(axis=1)]
+    assert np.array_equal(in_cluster, cluster[np.lexsort(cluster.T[::-1])])
 
 
 @settings(max_examples=20, deadline=None)
@@ -92,3 +136,17 @@ def test_an_empty_mesh_has_an_empty_order() -> None:
     order = spatial_order(empty)
     assert len(order.vertex_order) == 0 and len(order.face_order) == 0
     assert reordered(empty, order).vertex_count == 0
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), vertex_count=st.integers(3, 40),
+       face_count=st.integers(1, 60))
+def test_per_corner_values_move_with_their_faces(
+        seed: int, vertex_count: int, face_count: int) -> None:
+    from pipeline.mesh_repair import triangle_angles_deg
+
+    mesh = _random_mesh(seed, vertex_count, face_count)
+    vertices_m, faces, order = in_spatial_order(mesh.vertices_m, mesh.faces)
+    np.testing.assert_array_equal(
+        corners_reordered(triangle_angles_deg(mesh.vertices_m, mesh.faces), order),
+        triangle_angles_deg(vertices_m, faces))
