@@ -73,6 +73,9 @@ def enhance_mesh(
     validate_config(config)
     if mesh.vertex_count == 0 or mesh.face_count == 0:
         raise ValueError("mesh: has no vertices or no faces")
+    non_finite = int(np.count_nonzero(~np.isfinite(mesh.vertices_m).all(axis=1)))
+    if non_finite:
+        raise ValueError(f"mesh: {non_finite} vertices have a coordinate that is not finite")
     if networks is not None and not networks.fits(config):
         raise ValueError("networks: loaded for another method, device or weights than "
                          "the config's")

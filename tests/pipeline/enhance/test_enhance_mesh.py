@@ -94,6 +94,19 @@ def test_a_correction_gain_out_of_range_is_named() -> None:
         validate_config(EnhanceConfig(correction_gain=0.0))
 
 
+@pytest.mark.parametrize("method", ["ldm", "selector", "laplacian"])
+def test_a_mesh_with_coordinates_not_finite_is_named(method: str) -> None:
+    from dataclasses import replace
+
+    from tests.pipeline.enhance.conftest import sphere
+
+    mesh = sphere()
+    vertices_m = mesh.vertices_m.copy()
+    vertices_m[3, 0], vertices_m[7, 2] = np.nan, np.inf
+    with pytest.raises(ValueError, match="mesh: 2 vertices have a coordinate that is not finite"):
+        enhance_mesh(replace(mesh, vertices_m=vertices_m), EnhanceConfig(method=method))
+
+
 def test_the_networks_leave_a_clean_mesh_and_enhance_a_noisy_one() -> None:
     from pipeline.enhance.data import noisy_along_normals
     from pipeline.enhance.noise_level import noise_to_edge_ratio
