@@ -150,3 +150,19 @@ def test_per_corner_values_move_with_their_faces(
     np.testing.assert_array_equal(
         corners_reordered(triangle_angles_deg(mesh.vertices_m, mesh.faces), order),
         triangle_angles_deg(vertices_m, faces))
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), face_count=st.integers(1, 80))
+def test_past_2_21_vertices_faces_take_three_keys_to_the_same_order(
+        seed: int, face_count: int) -> None:
+    from pipeline.mesh_order import _face_order
+
+    rng = np.random.default_rng(seed)
+    # Faces with three distinct vertices, as a mesh past 2^21 vertices would list them; the
+    # three-key branch is asked for by the vertex count alone.
+    corners = np.array([rng.choice(50, 3, replace=False) for _ in range(face_count)])
+    packed_order, packed_start = _face_order(corners, 50)
+    keyed_order, keyed_start = _face_order(corners, 2**22)
+    np.testing.assert_array_equal(keyed_order, packed_order)
+    np.testing.assert_array_equal(keyed_start, packed_start)
