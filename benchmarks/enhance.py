@@ -380,7 +380,7 @@ def perf_child(args) -> None:
         "device": args.device,
         "remesh_iterations": args.remesh_iterations, "warm_up": args.warm_up,
         "networks": args.networks,
-        "self_checked": args.self_check,
+        "self_checked": args.self_check, "profiled": profiler is not None,
         "self_check": checks[0].as_stats() if checks else None,
         "kernel_pieces": (pipeline.remesh.kernel_piece_count(noisy.face_count, None)
                           if args.remesh_iterations else 0),
