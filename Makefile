@@ -37,7 +37,7 @@ run: setup
 	$(VENV)/bin/volumesh serve --host $(HOST) --port $(PORT) --sample
 
 stage-settings: setup  ## the gateway's copy of the pipeline's job option settings
-	$(VENV)/bin/python -c "import json; from pipeline.reconstruct_config import settings_kinds; print(json.dumps(settings_kinds(), indent=1, sort_keys=True))" > app/core/stage_settings.json
+	$(VENV)/bin/python -c "import json; from pipeline.stage_config import settings_kinds; print(json.dumps(settings_kinds(), indent=1, sort_keys=True))" > app/core/stage_settings.json
 
 lint: setup
 	$(VENV)/bin/ruff check .

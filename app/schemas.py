@@ -1,4 +1,4 @@
-"""Request and response bodies of the REST API (the contract in DESIGN.md)."""
+"""Request and response bodies of the REST API (docs/api.md)."""
 
 from __future__ import annotations
 

@@ -30,11 +30,11 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from enhance import bunny_protocol  # noqa: E402
 from remesh_speed import light_remesh_config  # noqa: E402
 
-from pipeline import angle_cleanup  # noqa: E402
 from pipeline.enhance import EnhanceConfig, enhance_mesh  # noqa: E402
-from pipeline.mesh_order import reordered, spatial_order  # noqa: E402
-from pipeline.mesh_repair import compact, triangle_angles_deg  # noqa: E402
-from pipeline.remesh import remesh  # noqa: E402
+from pipeline.geometry.order import reordered, spatial_order  # noqa: E402
+from pipeline.geometry.repair import compact, triangle_angles_deg  # noqa: E402
+from pipeline.reconstruct.remesh import angle_cleanup  # noqa: E402
+from pipeline.reconstruct.remesh.isotropic import remesh  # noqa: E402
 
 
 def whole_mesh(vertices_m, faces, angles, min_deg: float, max_deg: float, passes: int):

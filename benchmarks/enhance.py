@@ -36,8 +36,6 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from pipeline.enhance import EnhanceConfig, enhance_mesh  # noqa: E402
-from pipeline.enhance.bounded_noise import BoundedNoiseConfig  # noqa: E402
-from pipeline.enhance.data import DataConfig, noisy_along_normals  # noqa: E402
 from pipeline.enhance.enhancement import (  # noqa: E402
     CHECKED_STAGE_PROGRESS,
     STAGE_PROGRESS,
@@ -47,9 +45,11 @@ from pipeline.enhance.enhancement import (  # noqa: E402
 )
 from pipeline.enhance.metrics import c2m_summary, normal_error_deg  # noqa: E402
 from pipeline.enhance.networks import load_networks  # noqa: E402
-from pipeline.enhance.normal_filter import NormalFilterConfig, normal_filter  # noqa: E402
-from pipeline.mesh import TriangleMesh  # noqa: E402
-from pipeline.remesh_ahead import finish_remesh_ahead, start_remesh_ahead  # noqa: E402
+from pipeline.enhance.presmooth.midrange import BoundedNoiseConfig  # noqa: E402
+from pipeline.enhance.training.data import DataConfig, noisy_along_normals  # noqa: E402
+from pipeline.enhance.update.normal_filter import NormalFilterConfig, normal_filter  # noqa: E402
+from pipeline.geometry.mesh import TriangleMesh  # noqa: E402
+from pipeline.reconstruct.remesh.speculative import finish_remesh_ahead, start_remesh_ahead  # noqa: E402
 
 SWEEPS = {
     "laplacian": range(1, 31),
@@ -113,10 +113,10 @@ def bunny_protocol(meshes: Path, seed: int, edge_m: float = 0.005, name: str = "
     The remesh (gpytoolbox's `remesh_botsch`, 10 rounds, projected) runs in a child
     (`remesh_kernel.run_isolated`, the same arrays as in this process): on a Möbius strip it
     aborts its process, which here is a ValueError for that mesh alone."""
-    from pipeline.boundary_split import split_boundary_edges
+    from pipeline.geometry.repair import repair
     from pipeline.io.mesh_io import read_mesh
-    from pipeline.mesh_repair import repair
-    from pipeline.remesh_kernel import start_isolated
+    from pipeline.reconstruct.remesh.boundary_split import split_boundary_edges
+    from pipeline.reconstruct.remesh.kernel import start_isolated
 
     m = read_mesh(protocol_mesh_file(meshes, name))
     v = m.vertices_m
@@ -179,8 +179,8 @@ def selector_same_ending(noisy, truth, base: EnhanceConfig) -> dict:
 def twicing_bounded_noise(noisy, truth, iterations: int) -> dict:
     """Twicing at `iterations` ended by the bounded-noise refinement: the same trick as the
     enhance stage's pre-smoothing on a classical smoother, with no trained part."""
-    from pipeline.enhance.baselines import twicing_smooth
-    from pipeline.enhance.bounded_noise import bounded_noise_refine
+    from pipeline.enhance.presmooth.midrange import bounded_noise_refine
+    from pipeline.geometry.smoothing import twicing_smooth
 
     t = time.perf_counter()
     result = bounded_noise_refine(noisy, twicing_smooth(noisy, iterations), BoundedNoiseConfig())
@@ -220,8 +220,8 @@ def depth_level(weights: dict | None, views: int, seed: int, meshes: Path) -> di
     the networks' corrections are calibrated on the benchmark's degradation alone."""
     import cv2
 
-    from pipeline.enhance.data import make_pairs, procedural_meshes
-    from pipeline.enhance.validate import depth_scores, noisy_input
+    from pipeline.enhance.training.data import make_pairs, procedural_meshes
+    from pipeline.enhance.training.validate import depth_scores, noisy_input
     from pipeline.io.mesh_io import read_mesh
 
     val = [(n, read_mesh(meshes / f"{n}.obj")) for n in ("spot", "fandisk")]
@@ -256,9 +256,9 @@ def depth_level(weights: dict | None, views: int, seed: int, meshes: Path) -> di
 def calibration(pairs, weights: dict | None, views: int) -> dict:
     """Depth scores of the base and the networks, with how their corrections match the true
     ones (`correction_calibration`: least-squares gain, correlation, bias)."""
-    from pipeline.enhance.data import same_surface_mask
     from pipeline.enhance.metrics import correction_calibration
-    from pipeline.enhance.validate import depth_scores
+    from pipeline.enhance.training.data import same_surface_mask
+    from pipeline.enhance.training.validate import depth_scores
 
     idx = np.unique(np.linspace(0, len(pairs.source) - 1, views).round().astype(np.int64))
     base, clean, mask = pairs.degraded_n[idx], pairs.clean_n[idx], same_surface_mask(pairs, idx)
@@ -275,11 +275,11 @@ def network_predictions(weights: dict | None, pairs, idx, ldm_steps: tuple[int, 
     `idx`; a model whose weights do not load gives its error message instead."""
     import torch
 
-    from pipeline.enhance.loading import load_ldm, load_regressor
     from pipeline.enhance.models.common import side_inputs
     from pipeline.enhance.pipelines.depth_ldm import enhance_depth_ldm
-    from pipeline.enhance.validate import noisy_input
+    from pipeline.enhance.training.validate import noisy_input
     from pipeline.enhance.weights import shipped_bytes
+    from pipeline.enhance.weights.loading import load_ldm, load_regressor
 
     def get(name: str) -> bytes:
         return weights[name] if weights and name in weights else shipped_bytes(name)
@@ -339,10 +339,10 @@ def perf_child(args) -> None:
     loads its own. `--min-piece-faces` sets `remesh.MIN_PIECE_FACES` for both calls, to
     time another piece count on the device machine's cores; `--self-check` turns the
     self-check on (its stage is "check")."""
-    import pipeline.remesh
+    import pipeline.reconstruct.remesh.isotropic
 
     if args.min_piece_faces is not None:
-        pipeline.remesh.MIN_PIECE_FACES = args.min_piece_faces
+        pipeline.reconstruct.remesh.isotropic.MIN_PIECE_FACES = args.min_piece_faces
     truth, noisy = bunny_protocol(Path(args.meshes), args.seed, 1e-3 * args.edge_mm,
                                   name=args.mesh)
     weights = _weights(args.weights)
@@ -382,7 +382,8 @@ def perf_child(args) -> None:
         "networks": args.networks,
         "self_checked": args.self_check, "profiled": profiler is not None,
         "self_check": checks[0].as_stats() if checks else None,
-        "kernel_pieces": (pipeline.remesh.kernel_piece_count(noisy.face_count, None)
+        "kernel_pieces": (pipeline.reconstruct.remesh.isotropic.kernel_piece_count(
+            noisy.face_count, None)
                           if args.remesh_iterations else 0),
         "remesh_call_seconds": remesh_stats.get("seconds"),
         "kernel_wait_seconds": remesh_stats.get("kernel_wait_s"),

@@ -34,13 +34,13 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from enhance import VERTEX_NOISE_ONLY, network_predictions  # noqa: E402
 
 from app.cli.train_data import training_pairs, training_sets  # noqa: E402
-from pipeline.enhance import train as tr  # noqa: E402
-from pipeline.enhance import train_config as tc  # noqa: E402
-from pipeline.enhance.data import make_pairs  # noqa: E402
-from pipeline.enhance.loading import load_ldm, load_regressor, regressor_to_bytes  # noqa: E402
 from pipeline.enhance.models.regressor import RefinedRegressor  # noqa: E402
-from pipeline.enhance.validate import depth_scores, validate_ldm, validate_regressor  # noqa: E402
+from pipeline.enhance.training import config as tc  # noqa: E402
+from pipeline.enhance.training import stages as tr  # noqa: E402
+from pipeline.enhance.training.data import make_pairs  # noqa: E402
+from pipeline.enhance.training.validate import depth_scores, validate_ldm, validate_regressor  # noqa: E402
 from pipeline.enhance.weights import shipped_bytes  # noqa: E402
+from pipeline.enhance.weights.loading import load_ldm, load_regressor, regressor_to_bytes  # noqa: E402
 
 
 def identity_start(regressor_bytes: bytes) -> nn.Module:

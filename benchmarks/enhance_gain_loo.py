@@ -28,9 +28,9 @@ from enhance import bunny_protocol  # noqa: E402
 
 from app.cli.train_data import training_sets  # noqa: E402
 from pipeline.enhance import EnhanceConfig, enhance_mesh  # noqa: E402
-from pipeline.enhance.gain_training import GainTrainConfig, gain_examples, train_gain  # noqa: E402
-from pipeline.enhance.loading import weights_to_bytes  # noqa: E402
 from pipeline.enhance.metrics import c2m_summary  # noqa: E402
+from pipeline.enhance.training.gain import GainTrainConfig, gain_examples, train_gain  # noqa: E402
+from pipeline.enhance.weights.loading import weights_to_bytes  # noqa: E402
 
 
 def main() -> None:

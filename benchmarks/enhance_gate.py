@@ -28,9 +28,9 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from enhance import bunny_protocol  # noqa: E402
 
 from pipeline.enhance import EnhanceConfig, enhance_mesh  # noqa: E402
-from pipeline.enhance.data import noisy_along_normals  # noqa: E402
 from pipeline.enhance.metrics import c2m_summary  # noqa: E402
 from pipeline.enhance.noise_level import noise_to_edge_ratio  # noqa: E402
+from pipeline.enhance.training.data import noisy_along_normals  # noqa: E402
 
 AMPLITUDES_MM = (0.5, 1.0, 1.5, 2.0, 3.0, 5.0, 10.0)
 UNGATED = EnhanceConfig(min_noise_ratio=0.0)
@@ -64,9 +64,9 @@ def sweep(name: str, meshes: Path) -> dict:
 def reconstruction(meshes: Path) -> dict:
     from pipeline.io.capture_io import open_capture
     from pipeline.io.mesh_io import read_mesh
-    from pipeline.metrics import MetricsConfig, compare
-    from pipeline.reconstruct import posed_cameras, reconstruct
-    from pipeline.reconstruct_config import config_from_options
+    from pipeline.reconstruct.quality import MetricsConfig, compare
+    from pipeline.stage_config import config_from_options
+    from pipeline.stages import posed_cameras, reconstruct
 
     with tempfile.TemporaryDirectory() as tmp:
         # As the README's reconstruction figures: the CLI's synthetic capture of the bunny.

@@ -48,7 +48,7 @@ from enhance import (  # noqa: E402
 
 from app.cli.train_data import VALIDATION_MESHES  # noqa: E402
 from pipeline.enhance import EnhanceConfig  # noqa: E402
-from pipeline.mesh_repair import triangle_angles_deg  # noqa: E402
+from pipeline.geometry.repair import triangle_angles_deg  # noqa: E402
 
 TEST_MESHES = ("stanford-bunny",)
 

@@ -32,8 +32,13 @@ from enhance import bunny_protocol, score  # noqa: E402
 
 from pipeline.enhance import EnhanceConfig, enhance_mesh  # noqa: E402
 from pipeline.enhance.enhancement import light_remesh  # noqa: E402
-from pipeline.mesh import TriangleMesh, mean_edge_length_m  # noqa: E402
-from pipeline.remesh import RemeshConfig, angle_stats, remesh, surface_lost_edges  # noqa: E402
+from pipeline.geometry.mesh import TriangleMesh, mean_edge_length_m  # noqa: E402
+from pipeline.reconstruct.remesh.isotropic import (  # noqa: E402
+    RemeshConfig,
+    angle_stats,
+    remesh,
+    surface_lost_edges,
+)
 
 DEFAULT_MESHES = ("stanford-bunny", "spot", "fandisk", "teapot", "cow", "cheburashka", "homer",
                   "rocker-arm", "suzanne", "beetle")

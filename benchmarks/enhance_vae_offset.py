@@ -24,7 +24,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from pipeline.enhance.data import DataConfig, make_pairs, procedural_meshes  # noqa: E402
+from pipeline.enhance.training.data import DataConfig, make_pairs, procedural_meshes  # noqa: E402
 from pipeline.io.mesh_io import read_mesh  # noqa: E402
 
 TRAIN = ("beetle", "cheburashka", "cow", "homer", "rocker-arm", "suzanne", "teapot")
@@ -39,9 +39,9 @@ def run(train, val, encode_correction: bool, args) -> dict:
     import torch
 
     from pipeline.enhance.pipelines.depth_ldm import LDMModels
-    from pipeline.enhance.train import train_finetune, train_ldm, train_vae
-    from pipeline.enhance.train_config import CONFIGS, StageBudget
-    from pipeline.enhance.validate import validate_ldm
+    from pipeline.enhance.training.config import CONFIGS, StageBudget
+    from pipeline.enhance.training.stages import train_finetune, train_ldm, train_vae
+    from pipeline.enhance.training.validate import validate_ldm
 
     small = CONFIGS["small"]
     config = replace(

@@ -33,9 +33,9 @@ from enhance import bunny_protocol  # noqa: E402
 from pipeline.enhance import EnhanceConfig  # noqa: E402
 from pipeline.enhance.enhancement import enhance_renders, update_inputs  # noqa: E402
 from pipeline.enhance.metrics import signed_c2m  # noqa: E402
-from pipeline.enhance.render import render_depth  # noqa: E402
-from pipeline.enhance.update import view_steps  # noqa: E402
-from pipeline.mesh_order import reordered, spatial_order  # noqa: E402
+from pipeline.enhance.render.views import render_depth  # noqa: E402
+from pipeline.enhance.update.steps import view_steps  # noqa: E402
+from pipeline.geometry.order import reordered, spatial_order  # noqa: E402
 
 SAME_SURFACE_M = 0.005
 

@@ -21,10 +21,10 @@ from scipy.spatial import cKDTree
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from pipeline.geometry.mesh import TriangleMesh, vertex_normals  # noqa: E402
 from pipeline.io.gltf_io import DracoConfig, encode_glb  # noqa: E402
 from pipeline.io.gltf_read import decode_glb  # noqa: E402
 from pipeline.io.mesh_io import read_mesh  # noqa: E402
-from pipeline.mesh import TriangleMesh, vertex_normals  # noqa: E402
 
 
 def bumpy_torus(rings: int = 250, segments: int = 200) -> TriangleMesh:

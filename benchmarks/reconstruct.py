@@ -112,9 +112,9 @@ def tsdf_worker(capture: Path, voxel_m: float, out: Path) -> None:
     import open3d as o3d
     import open3d.core as o3c
 
+    from pipeline.geometry.mesh import TriangleMesh
     from pipeline.io.capture_io import open_capture
     from pipeline.io.mesh_io import write_ply
-    from pipeline.mesh import TriangleMesh
 
     with open_capture(capture) as reader:
         views = reader.read_frame(reader.meta.frame_indices[0], with_color=False)
@@ -157,7 +157,7 @@ def synthesise(mesh_path: Path | None, seed: int, out: Path) -> dict[str, Any]:
 def accuracy(result: Any, folder: Path) -> dict[str, Any]:
     from pipeline.io.capture_io import open_capture
     from pipeline.io.mesh_io import read_mesh
-    from pipeline.metrics import MetricsConfig, compare
+    from pipeline.reconstruct.quality import MetricsConfig, compare
 
     truth = read_mesh(folder / "ground_truth.ply")
     with open_capture(folder / "capture") as reader:

@@ -32,18 +32,18 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from enhance import bunny_protocol, score  # noqa: E402
 
-from pipeline.boundary_split import split_boundary_edges, split_everywhere  # noqa: E402
 from pipeline.enhance import EnhanceConfig, enhance_mesh  # noqa: E402
-from pipeline.mesh import TriangleMesh, mean_edge_length_m  # noqa: E402
-from pipeline.mesh_order import reordered, spatial_order  # noqa: E402
-from pipeline.mesh_repair import repair  # noqa: E402
-from pipeline.remesh import RemeshConfig, kernel_piece_count, remesh  # noqa: E402
-from pipeline.remesh_ahead import (  # noqa: E402
+from pipeline.geometry.mesh import TriangleMesh, mean_edge_length_m  # noqa: E402
+from pipeline.geometry.order import reordered, spatial_order  # noqa: E402
+from pipeline.geometry.repair import repair  # noqa: E402
+from pipeline.reconstruct.remesh.boundary_split import split_boundary_edges, split_everywhere  # noqa: E402
+from pipeline.reconstruct.remesh.isotropic import RemeshConfig, kernel_piece_count, remesh  # noqa: E402
+from pipeline.reconstruct.remesh.kernel import kernel_children  # noqa: E402
+from pipeline.reconstruct.remesh.speculative import (  # noqa: E402
     checked_faces,
     finish_remesh_ahead,
     start_remesh_ahead,
 )
-from pipeline.remesh_kernel import kernel_children  # noqa: E402
 
 
 def light_remesh_config(mesh: TriangleMesh, processes: int | None) -> RemeshConfig:

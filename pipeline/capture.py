@@ -1,4 +1,4 @@
-"""In-memory model of a capture in format v1 (see CAPTURE_FORMAT.md).
+"""In-memory model of a capture in format v1 (docs/capture-format.md).
 
 These are plain frozen dataclasses; reading and writing them lives in
 :mod:`pipeline.io.capture_io`.

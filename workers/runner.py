@@ -123,7 +123,7 @@ def validate_capture(ctx: WorkerContext, capture_id: str) -> None:
 
 def plan_stages(options: dict[str, Any]) -> list[str]:
     """The stages a job with these options runs: calibrate first when asked, export last."""
-    from pipeline.reconstruct import STAGES
+    from pipeline.stages import STAGES
 
     first = [CALIBRATE_STAGE] if options.get("calibration_capture_id") else []
     if options.get("calibrate_only"):
@@ -243,7 +243,7 @@ def run_step(ctx: WorkerContext, job_id: str, index: int, task_id: str | None,
 
 
 def _job_config(ctx: WorkerContext, job: JobView) -> tuple[Any, str]:
-    from pipeline.reconstruct_config import config_from_options, config_hash
+    from pipeline.stage_config import config_from_options, config_hash
 
     options = _pipeline_options(job.options)
     if job.options.get("calibration_capture_id"):
@@ -280,7 +280,7 @@ def calibrate(ctx: WorkerContext, job: JobView, index: int, count: int) -> bool:
     from pipeline.calibration import calibrate as find_poses
     from pipeline.io.capture_io import open_capture
     from pipeline.io.rig_io import rig_to_json
-    from pipeline.reconstruct_config import replace_section
+    from pipeline.stage_config import replace_section
 
     if ctx.store.rig(job.id) is not None:
         return False
@@ -301,7 +301,7 @@ def calibrate(ctx: WorkerContext, job: JobView, index: int, count: int) -> bool:
 def _run_stage(ctx: WorkerContext, job: JobView, stages: tuple[str, ...], index: int) -> bool:
     """Compute and store the stage's output; False when it was already stored."""
     from pipeline.io.capture_io import open_capture
-    from pipeline.reconstruct import run_stage
+    from pipeline.stages import run_stage
 
     found = ctx.store.capture(job.capture_id)
     if found is None:
@@ -340,7 +340,7 @@ def export(ctx: WorkerContext, job: JobView, stages: tuple[str, ...]) -> None:
     """Build the mesh from the stage outputs; store mesh.glb (Draco), mesh.ply, report.json."""
     from pipeline.io.gltf_io import encode_glb
     from pipeline.io.mesh_io import write_ply
-    from pipeline.reconstruct import mesh_from_artifacts, stage_stats
+    from pipeline.stages import mesh_from_artifacts, stage_stats
 
     started = time.perf_counter()
     found = ctx.store.capture(job.capture_id)

@@ -64,9 +64,9 @@ def _prepare_process(**_: Any) -> None:
     import pipeline.io.capture_io  # noqa: F401
 
     try:
-        import pipeline.reconstruct  # noqa: F401
+        import pipeline.stages  # noqa: F401
     except ImportError:
-        log.warning("pipeline.reconstruct is missing: stage tasks will fail")
+        log.warning("pipeline.stages is missing: stage tasks will fail")
 
 
 def _backoff_s(retries: int) -> float:

@@ -8,9 +8,9 @@ from typing import Annotated
 import typer
 
 from app.cli import app
-from pipeline.enhance.bounded_noise import BoundedNoiseConfig
-from pipeline.enhance.normal_filter import NormalFilterConfig
+from pipeline.enhance.presmooth.midrange import BoundedNoiseConfig
 from pipeline.enhance.self_check import SelfCheck
+from pipeline.enhance.update.normal_filter import NormalFilterConfig
 
 
 @app.command("enhance-mesh")

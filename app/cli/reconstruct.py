@@ -65,9 +65,9 @@ def reconstruct(
     from app.cli.paths import output_file
     from pipeline.io.capture_io import open_capture
     from pipeline.io.gltf_io import write_mesh
-    from pipeline.reconstruct import check_capture, planned_stages, posed_cameras
-    from pipeline.reconstruct import reconstruct as run_pipeline
-    from pipeline.reconstruct_config import config_from_options
+    from pipeline.stage_config import config_from_options
+    from pipeline.stages import check_capture, planned_stages, posed_cameras
+    from pipeline.stages import reconstruct as run_pipeline
 
     output_file(out, suffixes=(".glb", ".ply"))
     if report is not None:
@@ -97,7 +97,7 @@ def reconstruct(
     write_mesh(out, mesh)
     figures["output"] = {"path": str(out), "bytes": out.stat().st_size}
     if truth is not None:
-        from pipeline.metrics import MetricsConfig, compare
+        from pipeline.reconstruct.quality import MetricsConfig, compare
 
         figures["accuracy"] = compare(mesh, truth, cameras, MetricsConfig())
     if report is not None:

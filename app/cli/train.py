@@ -136,8 +136,8 @@ def train(
 def run_config(config: str, budget_scale: float, poses: int | None, mix: str,
                minutes: float | None, lr: float | None, loss_mask: float | None):
     """The named configuration with the command line's edits; ValueError names a bad option."""
-    from pipeline.enhance import train_config as tc
-    from pipeline.enhance.data import MIXES, with_mix
+    from pipeline.enhance.training import config as tc
+    from pipeline.enhance.training.data import MIXES, with_mix
 
     if config not in tc.CONFIGS:
         raise ValueError(f"--config: {config!r} is not one of {', '.join(tc.CONFIGS)}")
@@ -183,7 +183,7 @@ def selector_ensemble(
         "different seeds.")],
 ) -> None:
     """Write the ensemble of trained selectors: the mean of their blend weights."""
-    from pipeline.enhance.loading import load_selector, selector_ensemble_to_bytes
+    from pipeline.enhance.weights.loading import load_selector, selector_ensemble_to_bytes
 
     if len(set(members)) < 2 or len(set(members)) < len(members):
         raise ValueError("selector-ensemble: give two or more different selector files")

@@ -20,8 +20,8 @@ def selector_stage(out: Path, train_set, val_set, config, seed: int) -> dict:
     import numpy as np
     from tqdm import tqdm
 
-    from pipeline.enhance import selector_training as st
-    from pipeline.enhance.loading import weights_to_bytes
+    from pipeline.enhance.training import selector as st
+    from pipeline.enhance.weights.loading import weights_to_bytes
 
     rng = np.random.default_rng(seed)
     t0 = time.monotonic()
@@ -49,8 +49,8 @@ def gain_stage(out: Path, train_set, val_set, config, seed: int,
     import numpy as np
     from tqdm import tqdm
 
-    from pipeline.enhance import gain_training as gt
-    from pipeline.enhance.loading import weights_to_bytes
+    from pipeline.enhance.training import gain as gt
+    from pipeline.enhance.weights.loading import weights_to_bytes
 
     rng = np.random.default_rng(seed)
     t0 = time.monotonic()
@@ -95,7 +95,7 @@ def training_sets(meshes: Path, procedural: int, seed: int) -> tuple[list, list]
     held apart)."""
     import numpy as np
 
-    from pipeline.enhance.data import procedural_meshes
+    from pipeline.enhance.training.data import procedural_meshes
     from pipeline.io.mesh_io import read_mesh
 
     sources = sorted(p for p in meshes.glob("*") if p.suffix.lower() in (".obj", ".ply", ".off"))
@@ -116,7 +116,7 @@ def training_pairs(items, data, seed: int, workers: int, progress=None):
     from dataclasses import replace
     from multiprocessing import get_context
 
-    from pipeline.enhance.data import concat_pairs, make_pairs
+    from pipeline.enhance.training.data import concat_pairs, make_pairs
 
     sources, configs = [], []
     for name, mesh in items:

@@ -14,23 +14,23 @@ from pathlib import Path
 from typing import Any
 
 from app.cli.train_data import stage_bar
-from pipeline.enhance import train as tr
-from pipeline.enhance import train_loop as tl
-from pipeline.enhance.data import DepthPairs
-from pipeline.enhance.loading import (
+from pipeline.enhance.models.controlnet import ControlNet
+from pipeline.enhance.models.regressor import ResidualUNet
+from pipeline.enhance.models.unet import LatentUNet
+from pipeline.enhance.models.vae import DepthVAE
+from pipeline.enhance.pipelines.depth_ldm import LDMModels
+from pipeline.enhance.training import loop as tl
+from pipeline.enhance.training import stages as tr
+from pipeline.enhance.training.config import TrainConfig
+from pipeline.enhance.training.data import DepthPairs
+from pipeline.enhance.training.validate import validate_ldm, validate_regressor
+from pipeline.enhance.weights.loading import (
     ldm_to_bytes,
     load_ldm,
     load_regressor,
     load_vae,
     weights_to_bytes,
 )
-from pipeline.enhance.models.controlnet import ControlNet
-from pipeline.enhance.models.regressor import ResidualUNet
-from pipeline.enhance.models.unet import LatentUNet
-from pipeline.enhance.models.vae import DepthVAE
-from pipeline.enhance.pipelines.depth_ldm import LDMModels
-from pipeline.enhance.train_config import TrainConfig
-from pipeline.enhance.validate import validate_ldm, validate_regressor
 
 NETWORK_STAGES = ("regressor", "vae", "ldm", "finetune")
 

@@ -28,7 +28,7 @@ def interpolate_weights(
     START's to END's, tensor by tensor (float16); END's other .safetensors (selector, vertex
     gains) are copied as they are."""
     from app.cli.paths import output_folder
-    from pipeline.enhance.loading import interpolated_weights
+    from pipeline.enhance.weights.loading import interpolated_weights
 
     for folder in (start, end):
         missing = [n for n in DEPTH_NETWORKS if not (folder / f"{n}.safetensors").is_file()]

@@ -2,7 +2,7 @@
 misspelt or mistyped setting is a 422 naming it, not a job that fails at its first stage.
 
 The gateway does not import the pipeline; `stage_settings.json` is a copy of
-`pipeline.reconstruct_config.settings_kinds()`, kept equal by a test (regenerate it with
+`pipeline.stage_config.settings_kinds()`, kept equal by a test (regenerate it with
 `make stage-settings`). Value ranges are still the worker's to check.
 """
 

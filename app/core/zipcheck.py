@@ -84,7 +84,7 @@ def _capture_root(names: list[str]) -> str:
     tops = [n for n in names if n.count("/") == 1 and n.endswith("/capture.json")]
     if len(tops) != 1:
         raise _bad("The zip has no capture.json at its top (or under one top folder); is it a "
-                   "volumesh capture (CAPTURE_FORMAT.md)?")
+                   "volumesh capture (docs/capture-format.md)?")
     return tops[0][: -len("capture.json")]
 
 

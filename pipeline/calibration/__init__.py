@@ -1,4 +1,4 @@
-"""Multi-camera extrinsic calibration from ChArUco captures (DESIGN.md step 3).
+"""Multi-camera extrinsic calibration from ChArUco captures (docs/architecture.md, step 3).
 
 Entry point: ``calibrate(capture, config, progress) -> (world_from_depth, report)``.
 """

@@ -1,6 +1,6 @@
 """The calibration entry point: a ChArUco calibration capture in, ``world_from_depth`` out.
 
-Steps (DESIGN.md step 3): detect corners in every colour view, PnP per view, chain camera pairs
+Steps: detect corners in every colour view, PnP per view, chain camera pairs
 into a pose graph, iterate refinement with outlier rejection, bundle-adjust everything, then
 optionally refine the depth cameras by ICP. The world is the reference camera's depth frame
 turned to +Y up: x right, y up, z towards the back of that camera.

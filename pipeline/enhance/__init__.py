@@ -1,4 +1,4 @@
-"""LDM mesh enhancement (DESIGN.md step 8): depth views of a mesh are enhanced and the vertices
+"""LDM mesh enhancement: depth views of a mesh are enhanced and the vertices
 follow them. The only package that imports torch (lazily, inside functions)."""
 
 from pipeline.enhance.config import EnhanceConfig

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from pipeline.enhance.bounded_noise import BoundedNoiseConfig
-from pipeline.enhance.normal_filter import NormalFilterConfig
-from pipeline.enhance.update import UpdateConfig
+from pipeline.enhance.presmooth.midrange import BoundedNoiseConfig
+from pipeline.enhance.update.normal_filter import NormalFilterConfig
+from pipeline.enhance.update.steps import UpdateConfig
 
 METHODS = (
     "ldm", "regressor", "views", "taubin", "laplacian", "twicing", "adaptive", "selector",
@@ -105,7 +105,8 @@ class EnhanceConfig:
     cores and would be nearly all of the time on a GPU."""
     remesh_ahead: bool | None = None
     """Start the light remesh's kernel on the mesh the update moves, beside the networks, and
-    carry its result onto the moved mesh (`pipeline.remesh_ahead`), rather than remesh the
+    carry its result onto the moved mesh (`pipeline.reconstruct.remesh.speculative`), rather
+    than remesh the
     moved mesh after the update. None: where the device is an accelerator, whose host has
     cores to spare while the networks and the update run there; on 2 CPU cores the kernel
     only takes them from the networks (the bunny: no faster). The kernel's choices are then

@@ -17,8 +17,7 @@ from pipeline.enhance.networks import (
     selector_for,
 )
 from pipeline.enhance.noise_level import noise_to_edge_ratio
-from pipeline.enhance.normal_filter import normal_filter
-from pipeline.enhance.render import (
+from pipeline.enhance.render.views import (
     DepthRenders,
     ViewSet,
     make_views,
@@ -26,11 +25,13 @@ from pipeline.enhance.render import (
     view_directions,
 )
 from pipeline.enhance.self_check import SelfCheck, scored, simulated_copy
-from pipeline.enhance.update import UpdateConfig, ViewSteps, apply_view_steps, view_steps
-from pipeline.mesh import TriangleMesh, mean_edge_length_m
-from pipeline.mesh_order import reordered, restored, spatial_order
-from pipeline.remesh import RemeshConfig, kernel_piece_count, remesh
-from pipeline.remesh_ahead import (
+from pipeline.enhance.update.normal_filter import normal_filter
+from pipeline.enhance.update.steps import UpdateConfig, ViewSteps, apply_view_steps, view_steps
+from pipeline.geometry.mesh import TriangleMesh, mean_edge_length_m
+from pipeline.geometry.order import reordered, restored, spatial_order
+from pipeline.reconstruct.remesh.isotropic import RemeshConfig, kernel_piece_count, remesh
+from pipeline.reconstruct.remesh.kernel import KernelChild, kernel_children
+from pipeline.reconstruct.remesh.speculative import (
     CheckedFaces,
     RemeshAhead,
     carried_with_angles,
@@ -38,7 +39,6 @@ from pipeline.remesh_ahead import (
     finish_remesh_ahead,
     start_remesh_ahead,
 )
-from pipeline.remesh_kernel import KernelChild, kernel_children
 
 STAGE_PROGRESS = {"render": 0.03, "presmooth": 0.33, "network": 0.5, "update": 0.54,
                   "remesh": 1.0}
@@ -67,8 +67,8 @@ def enhance_mesh(
     `networks`: the networks `config` runs, loaded beforehand (`networks.load_networks`) and
     kept between meshes; None: loaded here, each as its stage begins (with ``self_check``,
     once for both uses)."""
-    from pipeline.enhance import baselines
     from pipeline.enhance.inference import selector_presmoothed
+    from pipeline.geometry import smoothing as baselines
 
     validate_config(config)
     if mesh.vertex_count == 0 or mesh.face_count == 0:
@@ -207,7 +207,7 @@ def _updated_remeshed_ahead(ordered: TriangleMesh, inputs: UpdateInputs, config:
     faces, checked beforehand). What starts it (repair, split, order, pieces) runs in a
     thread: on a GPU the host has little else to do. There the result is carried onto the
     moved base on the device (`carry_torch`)."""
-    from pipeline.enhance.carry_torch import carried_on
+    from pipeline.enhance.clean.transfer_torch import carried_on
     from pipeline.enhance.device import accelerator
 
     def start() -> RemeshAhead | None:
@@ -301,8 +301,8 @@ def learned_vertex_gain(
     """(V,) each vertex's share of the correction, from the method's gain network on
     `device`: `model`, loaded beforehand (`loading.load_vertex_gain`), else loaded here."""
     from pipeline.enhance.inference import vertex_gains
-    from pipeline.enhance.loading import load_vertex_gain, model_bytes
-    from pipeline.enhance.vertex_gain import gain_features
+    from pipeline.enhance.update.vertex_gain import gain_features
+    from pipeline.enhance.weights.loading import load_vertex_gain, model_bytes
 
     if model is None:
         model = load_vertex_gain(model_bytes(config, f"{config.method}_gain"))

@@ -9,16 +9,16 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.enhance.loading import load_enhancer
-from pipeline.enhance.render import DepthRenders, canny_edges
-from pipeline.mesh import TriangleMesh
+from pipeline.enhance.render.views import DepthRenders, canny_edges
+from pipeline.enhance.weights.loading import load_enhancer
+from pipeline.geometry.mesh import TriangleMesh
 
 if TYPE_CHECKING:
     import torch
 
-    from pipeline.enhance.bounded_noise import BoundedNoiseConfig
     from pipeline.enhance.config import EnhanceConfig
-    from pipeline.enhance.twicing_blend import TwicingCandidates
+    from pipeline.enhance.presmooth.midrange import BoundedNoiseConfig
+    from pipeline.enhance.presmooth.scale_selection import TwicingCandidates
 
 
 ROW_CHUNK = 4096
@@ -52,7 +52,7 @@ def selector_blend(model, candidates: TwicingCandidates, device: str = "cpu"
                    ) -> NDArray[np.float64]:
     """(V, 3) the candidates blended with a loaded `TwicingSelector`'s weights, run on
     `device`."""
-    from pipeline.enhance.twicing_blend import blend
+    from pipeline.enhance.presmooth.scale_selection import blend
 
     return blend(candidates.vertices_m, by_row_chunks(model, candidates.features, device))
 
@@ -65,9 +65,9 @@ def presmoothed(
     loaded `selector` (`load_selector`) where one is given (its smoothing on `device`), else
     `baselines.presmooth`, then `bounded`'s refinement where given
     (`bounded_noise_refine`); 0 iterations: the mesh."""
-    from pipeline.enhance.baselines import presmooth
-    from pipeline.enhance.bounded_noise import bounded_noise_refine
     from pipeline.enhance.device import accelerator
+    from pipeline.enhance.presmooth.midrange import bounded_noise_refine
+    from pipeline.geometry.smoothing import presmooth
 
     if iterations == 0:
         return mesh
@@ -85,9 +85,13 @@ def selector_presmoothed(mesh: TriangleMesh, selector, bounded: BoundedNoiseConf
     refinement where given and where it runs (`refined_where_bounded`): from the blend of
     the weights averaged over the neighbours (`BoundedNoiseConfig.weight_passes`); where it
     does not run, the blend as it is. The smoothing steps run on `device` (None: scipy)."""
-    from pipeline.enhance.bounded_noise import refined_where_bounded
     from pipeline.enhance.device import accelerator
-    from pipeline.enhance.twicing_blend import blend, twicing_candidates, weights_averaged
+    from pipeline.enhance.presmooth.midrange import refined_where_bounded
+    from pipeline.enhance.presmooth.scale_selection import (
+        blend,
+        twicing_candidates,
+        weights_averaged,
+    )
 
     candidates = twicing_candidates(mesh, selector.config.blend, device)
     weights = by_row_chunks(selector, candidates.features, device or "cpu")

@@ -1,4 +1,4 @@
-"""Mesh quantities in torch, on the enhancement's device: what `pipeline.mesh` and
+"""Mesh quantities in torch, on the enhancement's device: what `pipeline.geometry.mesh` and
 `baselines.mean_operator` give in numpy and scipy, for the stages that run on a GPU, where
 the host's share of a mesh's enhancement is what keeps it above a second."""
 
@@ -13,7 +13,7 @@ from pipeline.enhance.device import csr_tensor
 
 def vertex_normals(vertices_m: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
     """(V, 3) float32 area-weighted unit vertex normals of (V, 3) vertices and (F, 3) int64
-    faces (zero where the faces about a vertex cancel): float32, as `pipeline.mesh`'s, so
+    faces (zero where the faces about a vertex cancel): float32, as `pipeline.geometry.mesh`'s, so
     both paths agree to its rounding."""
     tri = vertices_m[faces]
     weighted = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
@@ -25,7 +25,7 @@ def vertex_normals(vertices_m: torch.Tensor, faces: torch.Tensor) -> torch.Tenso
 
 
 def face_normals(vertices_m: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
-    """(F, 3) unit face normals (zero for degenerate faces), as `pipeline.mesh`'s."""
+    """(F, 3) unit face normals (zero for degenerate faces), as `pipeline.geometry.mesh`'s."""
     tri = vertices_m[faces]
     normals = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     length = torch.linalg.vector_norm(normals, dim=1, keepdim=True)

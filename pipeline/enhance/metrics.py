@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.mesh import TriangleMesh, face_normals, vertex_normals
-from pipeline.metrics import signed_distances_m
+from pipeline.geometry.mesh import TriangleMesh, face_normals, vertex_normals
+from pipeline.reconstruct.quality import signed_distances_m
 
 
 def _closest(reference: TriangleMesh, points_m: NDArray[np.float64]):

@@ -68,7 +68,7 @@ def networks_key(config: EnhanceConfig) -> tuple[Any, ...]:
 
 def selector_for(config: EnhanceConfig, networks: EnhanceNetworks | None):
     """The selector `config` runs: the kept one of `networks`, else loaded now."""
-    from pipeline.enhance.loading import load_selector, model_bytes
+    from pipeline.enhance.weights.loading import load_selector, model_bytes
 
     if networks is not None:
         return networks.selector
@@ -77,7 +77,12 @@ def selector_for(config: EnhanceConfig, networks: EnhanceNetworks | None):
 
 def load_networks(config: EnhanceConfig) -> EnhanceNetworks:
     """The networks `config`'s enhancement runs, loaded onto its device."""
-    from pipeline.enhance.loading import load_enhancer, load_selector, load_vertex_gain, model_bytes
+    from pipeline.enhance.weights.loading import (
+        load_enhancer,
+        load_selector,
+        load_vertex_gain,
+        model_bytes,
+    )
 
     enhancer = load_enhancer(config) if config.method in NETWORK_METHODS else None
     selector = load_selector(model_bytes(config, "selector")) if uses_selector(config) else None

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.enhance.baselines import mean_operator
-from pipeline.mesh import TriangleMesh, mean_edge_length_m, vertex_normals
+from pipeline.geometry.mesh import TriangleMesh, mean_edge_length_m, vertex_normals
+from pipeline.geometry.smoothing import mean_operator
 
 
 def noise_to_edge_ratio(mesh: TriangleMesh, device: str | None = None) -> float:

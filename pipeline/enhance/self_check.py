@@ -18,8 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.mesh import TriangleMesh, vertex_normals
-from pipeline.metrics import signed_distances_m
+from pipeline.geometry.mesh import TriangleMesh, vertex_normals
+from pipeline.reconstruct.quality import signed_distances_m
 
 
 @dataclass(frozen=True)

@@ -20,6 +20,7 @@ import DracoPy
 import numpy as np
 from numpy.typing import NDArray
 
+from pipeline.geometry.mesh import TriangleMesh, vertex_normals
 from pipeline.io.glb_format import (
     ARRAY_BUFFER,
     CHUNK_BIN,
@@ -35,7 +36,6 @@ from pipeline.io.glb_format import (
     USHORT,
 )
 from pipeline.io.mesh_io import write_ply
-from pipeline.mesh import TriangleMesh, vertex_normals
 
 
 @dataclass(frozen=True)

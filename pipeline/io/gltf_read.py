@@ -11,6 +11,7 @@ import DracoPy
 import numpy as np
 from numpy.typing import NDArray
 
+from pipeline.geometry.mesh import TriangleMesh
 from pipeline.io.glb_format import (
     CHUNK_BIN,
     CHUNK_JSON,
@@ -20,7 +21,6 @@ from pipeline.io.glb_format import (
     GLB_MAGIC,
     TRIANGLES,
 )
-from pipeline.mesh import TriangleMesh
 
 
 def decode_glb(data: bytes) -> TriangleMesh:

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.mesh import TriangleMesh
+from pipeline.geometry.mesh import TriangleMesh
 
 
 def read_mesh(path: str | Path) -> TriangleMesh:

@@ -13,7 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from pipeline.capture import Intrinsics
-from pipeline.mesh import TriangleMesh, vertex_normals
+from pipeline.geometry.mesh import TriangleMesh, vertex_normals
 
 _AMBIENT = 0.3
 # Fixed world lights (direction towards the light, weight): colour then does not depend on

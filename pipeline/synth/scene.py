@@ -10,7 +10,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from pipeline.capture import CameraInfo, CaptureMeta, FrameInfo, View
-from pipeline.mesh import TriangleMesh, vertex_normals
+from pipeline.geometry.mesh import TriangleMesh, vertex_normals
 from pipeline.synth.noise import KinectNoiseConfig, apply_kinect_noise, draw_depth_bias_m
 from pipeline.synth.render import MeshRaycaster, albedo_colors, shade_color
 from pipeline.synth.rig import RigConfig, rig_cameras

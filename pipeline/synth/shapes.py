@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.mesh import TriangleMesh
+from pipeline.geometry.mesh import TriangleMesh
 
 # (centre height, radius) of the snowman's three balls, metres: 1.8 m tall, a pinched neck.
 _SNOWMAN_BALLS = ((0.42, 0.42), (1.08, 0.32), (1.58, 0.22))

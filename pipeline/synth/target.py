@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from pipeline.capture import BoardSpec, CameraInfo, CaptureMeta, FrameInfo, Intrinsics, Target, View
-from pipeline.mesh import TriangleMesh
+from pipeline.geometry.mesh import TriangleMesh
 from pipeline.synth.noise import KinectNoiseConfig, apply_kinect_noise, draw_depth_bias_m
 from pipeline.synth.render import MeshRaycaster, lambert_shading
 from pipeline.synth.rig import RigConfig, rig_cameras

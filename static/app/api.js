@@ -1,4 +1,4 @@
-// The gateway's REST API (DESIGN.md): fetch with the API key, errors as the problem+json's
+// The gateway's REST API (docs/api.md): fetch with the API key, errors as the problem+json's
 // person-readable message, uploads with progress, and job progress as server-sent events.
 export const API = '/api/v1';
 const KEY_STORAGE = 'volumesh.apiKey';

@@ -1,4 +1,4 @@
-"""A capture written by another tool, following only CAPTURE_FORMAT.md, reconstructs too.
+"""A capture written by another tool, following only docs/capture-format.md, reconstructs too.
 
 Nothing here goes through volumesh's own writer: capture.json is written by hand, depth with a
 finer scale, lens distortion on the depth camera, colour in JPEG at twice the resolution from its

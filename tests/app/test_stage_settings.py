@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 
 from app.core.stage_settings import check_settings, stage_settings
-from pipeline.reconstruct_config import ReconstructConfig, config_from_options, settings_kinds
+from pipeline.stage_config import ReconstructConfig, config_from_options, settings_kinds
 
 
 def test_the_gateways_copy_is_the_pipelines() -> None:

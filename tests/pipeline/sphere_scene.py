@@ -8,7 +8,7 @@ import numpy as np
 import trimesh
 
 from pipeline.capture import CameraInfo, CaptureMeta, FrameInfo, Intrinsics, View
-from pipeline.mesh import TriangleMesh
+from pipeline.geometry.mesh import TriangleMesh
 
 CENTRE = np.array([0.0, 1.0, 0.0])
 RADIUS = 0.3
@@ -49,7 +49,7 @@ def sphere_depth(camera: CameraInfo, bias_m: float = 0.0, noise_m: float = 0.0,
 
     Rendered from ``pose`` (default: the camera's own world_from_depth).
     """
-    from pipeline.registration import ray_image
+    from pipeline.reconstruct.registration import ray_image
 
     pose = camera.world_from_depth if pose is None else pose
     assert pose is not None

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from pipeline.align import AlignConfig, DepthView, apply_offsets, estimate_corrections
-from pipeline.registration import RegistrationConfig, ray_image, register_view
+from pipeline.reconstruct.align import AlignConfig, DepthView, apply_offsets, estimate_corrections
+from pipeline.reconstruct.registration import RegistrationConfig, ray_image, register_view
 from tests.pipeline.sphere_scene import CENTRE, RADIUS, ring_cameras, sphere_depth
 
 # A big ball with two small ones stuck to it: no symmetry hides a camera's rotation.

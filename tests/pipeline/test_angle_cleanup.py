@@ -5,15 +5,15 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline import angle_cleanup
-from pipeline.angle_cleanup import (
+from pipeline.geometry.repair import compact, edge_table, triangle_angles_deg
+from pipeline.reconstruct.remesh import angle_cleanup
+from pipeline.reconstruct.remesh.angle_cleanup import (
     _near_edge_table,
     collapse_needles,
     drop_boundary_slivers,
     enforce_angles,
     flip_caps,
 )
-from pipeline.mesh_repair import compact, edge_table, triangle_angles_deg
 
 
 def _grid(n: int = 6) -> tuple[np.ndarray, np.ndarray]:

@@ -6,12 +6,12 @@ import trimesh
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from pipeline.boundary_split import (
+from pipeline.geometry.repair import edge_table, face_areas, faces_per_edge
+from pipeline.reconstruct.remesh.boundary_split import (
     split_boundary_edges,
     split_boundary_edges_with_parents,
     split_everywhere,
 )
-from pipeline.mesh_repair import edge_table, face_areas, faces_per_edge
 
 
 @settings(max_examples=25, deadline=None)
@@ -59,7 +59,7 @@ def test_the_rounds_near_the_long_edges_equal_the_rounds_on_the_whole_mesh(
     reaches its rim (few rings) and the rounds go to the whole mesh."""
     from unittest import mock
 
-    from pipeline import boundary_split
+    from pipeline.reconstruct.remesh import boundary_split
 
     sphere = trimesh.creation.icosphere(subdivisions=subdivisions, radius=0.5)
     rng = np.random.default_rng(seed)
@@ -87,7 +87,7 @@ def test_a_chain_that_reaches_the_region_rim_is_refused() -> None:
     """Three faces in a row, the region the first two: the second's longest edge, which a
     chain from the first needs, is the third's too, so it is on the region's rim and the
     region's rounds give up (the caller then runs them on the whole mesh)."""
-    from pipeline.boundary_split import _split_in_region
+    from pipeline.reconstruct.remesh.boundary_split import _split_in_region
 
     v = np.array([[0, 0, 0], [1, 0, 0], [0.4, 2, 0], [2.2, 0.3, 0], [2.5, 3, 0]], float)
     f = np.array([[0, 1, 2], [1, 3, 2], [2, 3, 4]], dtype=np.int32)

@@ -13,8 +13,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pipeline.capture import CameraInfo, Intrinsics, View
-from pipeline.colorize import ColorizeConfig, ColorView, colorize, colorize_mesh
-from pipeline.mesh import TriangleMesh
+from pipeline.geometry.mesh import TriangleMesh
+from pipeline.reconstruct.colorize import ColorizeConfig, ColorView, colorize, colorize_mesh
 
 ColorFn = Callable[[np.ndarray], np.ndarray]  # (N, 3) world points -> (N, 3) RGB floats
 RED = np.array([230.0, 20.0, 20.0])

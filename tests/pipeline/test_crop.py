@@ -2,7 +2,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.crop import CropConfig, crop_mask, find_floor, rig_axis, rig_cylinder_mask
+from pipeline.reconstruct.crop import CropConfig, crop_mask, find_floor, rig_axis, rig_cylinder_mask
 from tests.pipeline.sphere_scene import look_at
 
 TARGET = np.array([0.3, 1.0, -0.2])

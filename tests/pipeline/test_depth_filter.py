@@ -5,7 +5,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.depth_filter import (
+from pipeline.reconstruct.depth_filter import (
     DepthFilterConfig,
     apply_range,
     bilateral,

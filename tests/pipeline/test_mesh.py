@@ -5,7 +5,7 @@ import trimesh
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.mesh import (
+from pipeline.geometry.mesh import (
     FACE_BLOCK_FACES,
     TriangleMesh,
     face_cross_m2,

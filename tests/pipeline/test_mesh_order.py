@@ -2,8 +2,8 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.mesh import TriangleMesh
-from pipeline.mesh_order import (
+from pipeline.geometry.mesh import TriangleMesh
+from pipeline.geometry.order import (
     MeshOrder,
     corners_reordered,
     in_spatial_order,
@@ -143,7 +143,7 @@ def test_an_empty_mesh_has_an_empty_order() -> None:
        face_count=st.integers(1, 60))
 def test_per_corner_values_move_with_their_faces(
         seed: int, vertex_count: int, face_count: int) -> None:
-    from pipeline.mesh_repair import triangle_angles_deg
+    from pipeline.geometry.repair import triangle_angles_deg
 
     mesh = _random_mesh(seed, vertex_count, face_count)
     vertices_m, faces, order = in_spatial_order(mesh.vertices_m, mesh.faces)
@@ -156,7 +156,7 @@ def test_per_corner_values_move_with_their_faces(
 @given(seed=st.integers(0, 2**31 - 1), face_count=st.integers(1, 80))
 def test_past_2_21_vertices_faces_take_three_keys_to_the_same_order(
         seed: int, face_count: int) -> None:
-    from pipeline.mesh_order import _face_order
+    from pipeline.geometry.order import _face_order
 
     rng = np.random.default_rng(seed)
     # Faces with three distinct vertices, as a mesh past 2^21 vertices would list them; the

@@ -6,8 +6,8 @@ import trimesh
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.mesh import FACE_BLOCK_FACES
-from pipeline.mesh_repair import (
+from pipeline.geometry.mesh import FACE_BLOCK_FACES
+from pipeline.geometry.repair import (
     _first_of_each_corner_set,
     drop_small_components,
     edge_table,

@@ -6,7 +6,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial import cKDTree
 
-from pipeline.meshing import MeshingConfig, mesh_cloud, poisson_disk_indices, poisson_disk_samples
+from pipeline.reconstruct.meshing import (
+    MeshingConfig,
+    mesh_cloud,
+    poisson_disk_indices,
+    poisson_disk_samples,
+)
 from tests.pipeline.sphere_scene import CENTRE, RADIUS, distance_to_sphere
 
 

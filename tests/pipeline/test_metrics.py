@@ -3,8 +3,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.mesh import TriangleMesh
-from pipeline.metrics import MetricsConfig, compare, distance_figures, sample_surface
+from pipeline.geometry.mesh import TriangleMesh
+from pipeline.reconstruct.quality import MetricsConfig, compare, distance_figures, sample_surface
 from tests.pipeline.sphere_scene import CENTRE, RADIUS, ring_cameras, sphere_mesh
 
 CONFIG = MetricsConfig(sample_count=20_000)

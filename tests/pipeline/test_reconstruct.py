@@ -7,11 +7,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from pipeline.geometry.mesh import TriangleMesh
 from pipeline.io.capture_io import open_capture, write_capture
-from pipeline.mesh import TriangleMesh
-from pipeline.metrics import MetricsConfig, compare
-from pipeline.reconstruct import mesh_from_artifacts, planned_stages, reconstruct, run_stage
-from pipeline.reconstruct_config import ReconstructConfig, config_from_options
+from pipeline.reconstruct.quality import MetricsConfig, compare
+from pipeline.stage_config import ReconstructConfig, config_from_options
+from pipeline.stages import mesh_from_artifacts, planned_stages, reconstruct, run_stage
 from tests.pipeline.sphere_scene import (
     distance_to_sphere,
     ring_cameras,
@@ -123,8 +123,8 @@ def test_the_enhance_stage_asks_for_its_networks_only_where_it_enhances(
     import pipeline.enhance.enhancement as enhancement_module
     import pipeline.enhance.noise_level as noise_level
     from pipeline.enhance import EnhanceConfig
-    from pipeline.enhance.data import noisy_along_normals
     from pipeline.enhance.networks import EnhanceNetworks, load_networks
+    from pipeline.enhance.training.data import noisy_along_normals
 
     enhancement = EnhanceConfig(method="regressor", resolution=32, remesh_iterations=0)
     config = dataclasses.replace(ReconstructConfig(), enhancement=enhancement)
@@ -167,7 +167,7 @@ def test_the_enhance_stage_reports_its_self_check(
     """With `self_check` on, the stage's figures tell the check's decision and its two
     scores; off, they say there was none."""
     from pipeline.enhance import EnhanceConfig
-    from pipeline.enhance.data import noisy_along_normals
+    from pipeline.enhance.training.data import noisy_along_normals
 
     noisy = noisy_along_normals(whole_run[0], 0.01, np.random.default_rng(0))
     artifacts = {"vertices_m": noisy.vertices_m, "faces": noisy.faces}

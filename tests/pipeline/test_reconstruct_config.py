@@ -10,7 +10,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from pipeline.reconstruct_config import (
+from pipeline.stage_config import (
     ReconstructConfig,
     config_from_options,
     config_hash,

@@ -7,7 +7,7 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from pipeline.capture import Intrinsics
-from pipeline.registration import (
+from pipeline.reconstruct.registration import (
     RegistrationConfig,
     invert_rigid,
     pixel_rays,

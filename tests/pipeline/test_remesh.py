@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 import trimesh
 
-from pipeline.mesh import TriangleMesh
-from pipeline.mesh_repair import edge_table, triangle_angles_deg
-from pipeline.remesh import RemeshConfig, remesh
-from pipeline.remesh_kernel import run_isolated
+from pipeline.geometry.mesh import TriangleMesh
+from pipeline.geometry.repair import edge_table, triangle_angles_deg
+from pipeline.reconstruct.remesh.isotropic import RemeshConfig, remesh
+from pipeline.reconstruct.remesh.kernel import run_isolated
 
 MESHES = Path(__file__).resolve().parents[3] / "shared" / "data" / "meshes"
 
@@ -120,7 +120,7 @@ def test_the_kernel_equals_gpytoolbox_remesh_botsch(open_mesh: bool) -> None:
     exactly the wrapper's remesh, boundary vertices held, on a closed and an open mesh."""
     import gpytoolbox
 
-    from pipeline.remesh_kernel import kernel
+    from pipeline.reconstruct.remesh.kernel import kernel
 
     sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
     v = np.asarray(sphere.vertices, np.float64)
@@ -185,7 +185,7 @@ def test_a_coarse_open_mesh_is_remeshed_without_hubs_at_its_boundary() -> None:
 
 
 def test_surface_lost_edges_is_the_furthest_input_vertex_from_the_result() -> None:
-    from pipeline.remesh import surface_lost_edges
+    from pipeline.reconstruct.remesh.isotropic import surface_lost_edges
 
     line = np.stack([np.linspace(0.0, 1.0, 11), np.zeros(11), np.zeros(11)], axis=1)
     assert surface_lost_edges(line, line, 0.1) == 0.0

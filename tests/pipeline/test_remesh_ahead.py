@@ -9,16 +9,16 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.mesh import TriangleMesh, mean_edge_length_m
-from pipeline.remesh import RemeshConfig, remesh
-from pipeline.remesh_ahead import (
+from pipeline.geometry.mesh import TriangleMesh, mean_edge_length_m
+from pipeline.reconstruct.remesh.isotropic import RemeshConfig, remesh
+from pipeline.reconstruct.remesh.kernel import located_on
+from pipeline.reconstruct.remesh.speculative import (
     checked_faces,
     finish_remesh_ahead,
     in_background,
     midpoints_extended,
     start_remesh_ahead,
 )
-from pipeline.remesh_kernel import located_on
 from tests.pipeline.test_remesh_pieces import _noisy_sphere
 
 
@@ -143,7 +143,7 @@ def test_faces_checked_beforehand_give_the_same_remesh() -> None:
     """`checked_faces` says the faces need nothing and hands over their edge table; started
     with them, the remesh is the one that repairs and builds the table itself. A face the move
     made degenerate is still found and removed."""
-    from pipeline.mesh_repair import is_repaired
+    from pipeline.geometry.repair import is_repaired
 
     mesh = _noisy_sphere(8, True)
     checked = checked_faces(mesh)

@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.mesh import mean_edge_length_m
-from pipeline.mesh_repair import triangle_angles_deg
-from pipeline.remesh import RemeshConfig, remesh, start_kernel
-from pipeline.remesh_kernel import (
+from pipeline.geometry.mesh import mean_edge_length_m
+from pipeline.geometry.repair import triangle_angles_deg
+from pipeline.reconstruct.remesh.isotropic import RemeshConfig, remesh, start_kernel
+from pipeline.reconstruct.remesh.kernel import (
     KernelChild,
     _read_outcome,
     furthest_from_m,

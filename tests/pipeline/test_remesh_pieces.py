@@ -6,12 +6,12 @@ import trimesh
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.mesh import TriangleMesh, mean_edge_length_m
-from pipeline.mesh_order import reordered, spatial_order
-from pipeline.mesh_repair import edge_table, faces_per_edge
-from pipeline.remesh import RemeshConfig, kernel_piece_count, remesh
-from pipeline.remesh_kernel import kernel
-from pipeline.remesh_pieces import held_vertices, spatial_pieces, stitched
+from pipeline.geometry.mesh import TriangleMesh, mean_edge_length_m
+from pipeline.geometry.order import reordered, spatial_order
+from pipeline.geometry.repair import edge_table, faces_per_edge
+from pipeline.reconstruct.remesh.isotropic import RemeshConfig, kernel_piece_count, remesh
+from pipeline.reconstruct.remesh.kernel import kernel
+from pipeline.reconstruct.remesh.pieces import held_vertices, spatial_pieces, stitched
 
 
 def _noisy_sphere(seed: int, open_cap: bool, subdivisions: int = 4) -> TriangleMesh:
@@ -88,7 +88,7 @@ def test_held_vertices_are_the_boundary() -> None:
 def test_the_piece_count_follows_the_cores_and_the_mesh_size() -> None:
     import os
 
-    from pipeline.remesh import MIN_PIECE_FACES
+    from pipeline.reconstruct.remesh.isotropic import MIN_PIECE_FACES
 
     cores = len(os.sched_getaffinity(0))
     assert kernel_piece_count(10, None) == 1

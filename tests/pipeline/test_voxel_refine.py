@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.voxel_refine import VoxelRefineConfig, choose_cameras, refine_mask
+from pipeline.reconstruct.voxel_refine import VoxelRefineConfig, choose_cameras, refine_mask
 
 SIZE = 0.01
 
@@ -22,7 +22,7 @@ def _cloud(seed: int, count: int, cameras: int) -> tuple[np.ndarray, np.ndarray,
 
 def _reference(points: np.ndarray, index: np.ndarray, centres: np.ndarray,
                layer_axis: int) -> dict[tuple[int, ...], int]:
-    """Loop-by-loop statement of DESIGN step 5 (one majority pass)."""
+    """Loop-by-loop statement of docs/architecture.md, step 5 (one majority pass)."""
     voxels: dict[tuple[int, ...], set[int]] = {}
     for p, c in zip(points, index, strict=True):
         voxels.setdefault(tuple(np.floor(p / SIZE).astype(int)), set()).add(int(c))

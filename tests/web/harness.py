@@ -23,11 +23,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.mesh import TriangleMesh
+from pipeline.geometry.mesh import TriangleMesh
 
 CHROMIUM = Path("/usr/bin/chromium")
-# ../shared/WEB_NOTES.md: WebGPU runs on SwiftShader's Vulkan with exactly these four; with none
-# of them WebGPURenderer finds no adapter and falls back to WebGL2.
+# docs/decisions/headless-webgpu.md: WebGPU runs on SwiftShader's Vulkan with exactly these four;
+# with none of them WebGPURenderer finds no adapter and falls back to WebGL2.
 WEBGPU_FLAGS = ["--enable-unsafe-webgpu", "--enable-features=Vulkan", "--use-vulkan=swiftshader",
                 "--use-angle=swiftshader"]
 BASE_FLAGS = ["--no-sandbox", "--disable-background-networking", "--disable-component-update",

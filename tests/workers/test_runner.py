@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import dataclasses
 
-from pipeline.reconstruct import STAGES
-from pipeline.reconstruct_config import ReconstructConfig, config_from_options
+from pipeline.stage_config import ReconstructConfig, config_from_options
+from pipeline.stages import STAGES
 from workers.runner import SECTION_FIRST_STAGE, plan_stages, stage_keys
 
 

@@ -35,7 +35,7 @@ _POLL_S = 0.05
 _UPLOAD_BODY: dict[str, Any] = {
     "requestBody": {
         "required": True,
-        "description": "A capture zip in format v1 (CAPTURE_FORMAT.md): the raw body, or a "
+        "description": "A capture zip in format v1 (docs/capture-format.md): the raw body, or a "
                        "multipart form with the zip in the field `file`.",
         "content": {
             "application/zip": {"schema": {"type": "string", "format": "binary"}},

@@ -11,7 +11,7 @@ import torch
 from torch import nn
 
 from pipeline.enhance.models.common import RowMLP
-from pipeline.enhance.twicing_blend import TwicingBlendConfig
+from pipeline.enhance.presmooth.scale_selection import TwicingBlendConfig
 
 
 @dataclass(frozen=True)

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import torch
 
 from pipeline.enhance.models.common import RowMLP
-from pipeline.enhance.vertex_gain import GAIN_FEATURES
+from pipeline.enhance.update.vertex_gain import GAIN_FEATURES
 
 
 @dataclass(frozen=True)

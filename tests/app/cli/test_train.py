@@ -8,7 +8,7 @@ import torch
 from typer.testing import CliRunner
 
 from app.cli.train_data import training_pairs
-from pipeline.enhance.data import DataConfig, procedural_meshes
+from pipeline.enhance.training.data import DataConfig, procedural_meshes
 from pipeline.io.mesh_io import write_ply
 
 TINY_DATA = DataConfig(resolution=32, poses_per_mesh=3, views_per_pose=2,
@@ -55,7 +55,7 @@ def test_train_tiny_writes_weights_card_and_report(tmp_path):
 
 
 def test_the_ldm_a_run_writes_carries_the_regressor_it_refines(tmp_path):
-    from pipeline.enhance.loading import weights_from_bytes
+    from pipeline.enhance.weights.loading import weights_from_bytes
 
     result, out = _train_tiny(tmp_path, "regressor,vae,ldm")
     assert result.exit_code == 0, result.output
@@ -85,7 +85,7 @@ def test_a_meshes_folder_that_is_not_there_is_refused_before_any_work(tmp_path):
 
 def test_train_init_fine_tunes_given_weights_and_rejects_a_folder_without_them(tmp_path):
     from app.cli import app
-    from pipeline.enhance.loading import weights_from_bytes
+    from pipeline.enhance.weights.loading import weights_from_bytes
 
     meshes = tmp_path / "meshes"
     meshes.mkdir()
@@ -157,7 +157,7 @@ def test_mesh_mix_drops_only_the_sensor_degradations_and_unknown_mixes_are_refus
     from dataclasses import asdict
 
     from app.cli import app
-    from pipeline.enhance.data import with_mix
+    from pipeline.enhance.training.data import with_mix
 
     mesh = with_mix(TINY_DATA, "mesh")
     changed = {k for k, v in asdict(mesh).items() if asdict(TINY_DATA)[k] != v}
@@ -214,8 +214,8 @@ def test_selector_ensemble_writes_the_members_mean_and_names_a_missing_file(tmp_
 
     import torch
 
-    from pipeline.enhance.loading import load_selector, weights_to_bytes
     from pipeline.enhance.models.twicing_selector import SelectorConfig, TwicingSelector
+    from pipeline.enhance.weights.loading import load_selector, weights_to_bytes
 
     config = SelectorConfig(iterations=(2, 5), pilot_iterations=3, feature_rings=(0,), hidden=4)
     paths = []

@@ -5,8 +5,8 @@ import sys
 
 import torch
 
-from pipeline.enhance.loading import load_regressor, regressor_to_bytes
 from pipeline.enhance.models.regressor import RegressorConfig, ResidualUNet
+from pipeline.enhance.weights.loading import load_regressor, regressor_to_bytes
 
 
 def _cli(*args: str) -> subprocess.CompletedProcess:

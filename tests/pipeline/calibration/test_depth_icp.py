@@ -11,7 +11,7 @@ from pipeline.calibration.config import CalibrationConfig
 from pipeline.calibration.depth_icp import depth_cloud, refine_with_depth
 from pipeline.calibration.transforms import from_rotvec
 from pipeline.capture import Intrinsics
-from pipeline.mesh import TriangleMesh
+from pipeline.geometry.mesh import TriangleMesh
 from pipeline.synth.render import MeshRaycaster
 from pipeline.synth.rig import RigConfig, rig_cameras
 

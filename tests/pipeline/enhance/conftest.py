@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.enhance.data import DepthPairs
-from pipeline.mesh import TriangleMesh
+from pipeline.enhance.training.data import DepthPairs
+from pipeline.geometry.mesh import TriangleMesh
 
 
 def sphere(radius_m: float = 0.5, resolution: int = 24) -> TriangleMesh:
@@ -25,7 +25,7 @@ def unit_sphere() -> TriangleMesh:
 @pytest.fixture
 def noisy_sphere(unit_sphere: TriangleMesh) -> tuple[TriangleMesh, TriangleMesh]:
     """(clean, noisy): vertices moved along normals by uniform noise in ±1 cm, seeded."""
-    from pipeline.enhance.data import noisy_along_normals
+    from pipeline.enhance.training.data import noisy_along_normals
 
     return unit_sphere, noisy_along_normals(unit_sphere, 0.01, np.random.default_rng(0))
 

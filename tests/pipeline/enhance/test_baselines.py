@@ -3,7 +3,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.enhance.baselines import (
+from pipeline.geometry.smoothing import (
     bilateral_denoise,
     laplacian_smooth,
     taubin_smooth,
@@ -49,7 +49,7 @@ def test_taubin_shrinks_less_than_laplacian(unit_sphere):
 @settings(max_examples=10, deadline=None)
 @given(iterations=st.integers(0, 25), seed=st.integers(0, 2**16))
 def test_one_twicing_pass_is_laplacian_smoothing(iterations, seed):
-    from pipeline.enhance.data import noisy_along_normals
+    from pipeline.enhance.training.data import noisy_along_normals
 
     noisy = noisy_along_normals(sphere(resolution=10), 0.02, np.random.default_rng(seed))
     one = twicing_smooth(noisy, iterations, passes=1).vertices_m
@@ -83,9 +83,14 @@ def test_twicing_keeps_the_shape_that_laplacian_smoothing_shrinks(noisy_sphere):
 def test_adaptive_twicing_beats_every_fixed_count_where_flat_meets_sharp(kind):
     """A box and a cylinder (flat faces, sharp edges) remeshed to 2 cm edges, noise ±4 cm
     along normals (the benchmark's ratio): no one count suits faces and edges alike."""
-    from pipeline.enhance.baselines import AdaptiveTwicingConfig, adaptive_twicing
-    from pipeline.enhance.data import isotropic, noisy_along_normals, procedural_meshes, unit_extent
     from pipeline.enhance.metrics import signed_c2m
+    from pipeline.enhance.training.data import (
+        isotropic,
+        noisy_along_normals,
+        procedural_meshes,
+        unit_extent,
+    )
+    from pipeline.geometry.smoothing import AdaptiveTwicingConfig, adaptive_twicing
 
     name, mesh = procedural_meshes(np.random.default_rng(0), 5)[kind]
     clean = isotropic(unit_extent(mesh, name), 0.02)

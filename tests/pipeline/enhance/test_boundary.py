@@ -3,10 +3,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.enhance.baselines import mean_operator
-from pipeline.enhance.boundary import across_boundary, boundary_half_edges, boundary_offset
-from pipeline.enhance.data import noisy_along_normals
-from pipeline.enhance.twicing_blend import (
+from pipeline.enhance.presmooth.scale_selection import (
     TwicingBlendConfig,
     _product,
     _step_polynomials,
@@ -14,7 +11,10 @@ from pipeline.enhance.twicing_blend import (
     field_ops,
     twicing_candidates,
 )
-from pipeline.mesh import TriangleMesh
+from pipeline.enhance.training.data import noisy_along_normals
+from pipeline.geometry.boundary import across_boundary, boundary_half_edges, boundary_offset
+from pipeline.geometry.mesh import TriangleMesh
+from pipeline.geometry.smoothing import mean_operator
 from tests.pipeline.enhance.conftest import sphere
 
 HOLD = TwicingBlendConfig(iterations=(10, 60), pilot_iterations=10, feature_rings=(0,))

@@ -6,17 +6,17 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pipeline.enhance import EnhanceConfig
-from pipeline.enhance.baselines import twicing_smooth
-from pipeline.enhance.bounded_noise import (
+from pipeline.enhance.config import validate_config
+from pipeline.enhance.presmooth.midrange import (
     BoundedNoiseConfig,
     bounded_noise_refine,
     closed_neighbourhoods,
     neighbourhood_range,
     residual_kurtosis,
 )
-from pipeline.enhance.config import validate_config
-from pipeline.enhance.data import noisy_along_normals
-from pipeline.mesh import TriangleMesh
+from pipeline.enhance.training.data import noisy_along_normals
+from pipeline.geometry.mesh import TriangleMesh
+from pipeline.geometry.smoothing import twicing_smooth
 from tests.pipeline.enhance.conftest import radial_rms_m, sphere
 from tests.pipeline.enhance.test_boundary import grid
 
@@ -164,8 +164,8 @@ def test_the_torch_refinement_is_numpys(open_boundary):
 def _selector_presmoothed(noisy: TriangleMesh, config: BoundedNoiseConfig | None
                           ) -> TriangleMesh:
     from pipeline.enhance.inference import selector_presmoothed
-    from pipeline.enhance.loading import load_selector
     from pipeline.enhance.weights import shipped_bytes
+    from pipeline.enhance.weights.loading import load_selector
 
     return selector_presmoothed(noisy, load_selector(shipped_bytes("selector")), config)
 
@@ -177,9 +177,9 @@ def test_the_selectors_averaged_weights_give_the_refinement_a_closer_start(seed)
     the blend of its own weights."""
     import torch
 
-    from pipeline.enhance.loading import load_selector
-    from pipeline.enhance.twicing_blend import twicing_candidates, weights_averaged
+    from pipeline.enhance.presmooth.scale_selection import twicing_candidates, weights_averaged
     from pipeline.enhance.weights import shipped_bytes
+    from pipeline.enhance.weights.loading import load_selector
 
     noisy = noisy_along_normals(sphere(0.5, 64), 0.01, np.random.default_rng(seed))
     plain = radial_rms_m(_selector_presmoothed(noisy, BoundedNoiseConfig(weight_passes=0)))
@@ -198,7 +198,7 @@ def test_where_the_refinement_does_not_run_the_selectors_blend_is_kept():
     its own weights, not of the averaged ones the refinement would have started from."""
     rng = np.random.default_rng(0)
     clean = sphere(0.5, 64)
-    from pipeline.mesh import vertex_normals
+    from pipeline.geometry.mesh import vertex_normals
 
     normals = vertex_normals(clean.vertices_m, clean.faces).astype(np.float64)
     noisy = clean.with_vertices(clean.vertices_m

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.enhance.carry_torch import carried_on
-from pipeline.enhance.data import noisy_along_normals
-from pipeline.remesh_ahead import carried_with_angles
+from pipeline.enhance.clean.transfer_torch import carried_on
+from pipeline.enhance.training.data import noisy_along_normals
+from pipeline.reconstruct.remesh.speculative import carried_with_angles
 from tests.pipeline.enhance.conftest import sphere
 
 

@@ -9,7 +9,7 @@ from tests.pipeline.enhance.conftest import sphere
 
 def test_enhance_mesh_smooths_a_noisy_mesh(tmp_path):
     from app.cli import app
-    from pipeline.enhance.data import noisy_along_normals
+    from pipeline.enhance.training.data import noisy_along_normals
 
     noisy = noisy_along_normals(sphere(0.5, 24), 0.01, np.random.default_rng(1))
     src, dst = tmp_path / "in.ply", tmp_path / "out.ply"
@@ -82,7 +82,7 @@ def test_a_fixed_gain_replaces_the_learned_gains_and_weights_folders_carry_gains
     from importlib import resources
 
     from app.cli import app
-    from pipeline.enhance.data import noisy_along_normals
+    from pipeline.enhance.training.data import noisy_along_normals
 
     noisy = noisy_along_normals(sphere(0.5, 24), 0.01, np.random.default_rng(1))
     src = tmp_path / "in.ply"
@@ -179,7 +179,7 @@ def test_the_self_check_tells_its_decision(tmp_path):
     """`--self-check` says what it measured on the simulated copy and which result it kept;
     without it nothing of the kind is said."""
     from app.cli import app
-    from pipeline.enhance.data import noisy_along_normals
+    from pipeline.enhance.training.data import noisy_along_normals
 
     src = tmp_path / "noisy.ply"
     write_ply(src, noisy_along_normals(sphere(), 0.01, np.random.default_rng(0)))

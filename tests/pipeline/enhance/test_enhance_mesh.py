@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from pipeline.enhance import EnhanceConfig, enhance_mesh
-from pipeline.enhance.normal_filter import NormalFilterConfig
-from pipeline.mesh import TriangleMesh
-from pipeline.mesh_repair import triangle_angles_deg
+from pipeline.enhance.update.normal_filter import NormalFilterConfig
+from pipeline.geometry.mesh import TriangleMesh
+from pipeline.geometry.repair import triangle_angles_deg
 from tests.pipeline.enhance.conftest import radial_rms_m
 
 OFF = NormalFilterConfig(normal_iterations=0)
@@ -108,9 +108,9 @@ def test_a_mesh_with_coordinates_not_finite_is_named(method: str) -> None:
 
 
 def test_the_networks_leave_a_clean_mesh_and_enhance_a_noisy_one() -> None:
-    from pipeline.enhance.data import noisy_along_normals
     from pipeline.enhance.noise_level import noise_to_edge_ratio
-    from pipeline.mesh import mean_edge_length_m
+    from pipeline.enhance.training.data import noisy_along_normals
+    from pipeline.geometry.mesh import mean_edge_length_m
     from tests.pipeline.enhance.conftest import sphere
 
     clean = sphere(0.5, 40)
@@ -133,8 +133,8 @@ def test_a_negative_noise_gate_is_named() -> None:
 
 
 def test_progress_names_every_stage_in_order_and_ends_at_one() -> None:
-    from pipeline.enhance.data import noisy_along_normals
     from pipeline.enhance.enhancement import STAGE_PROGRESS
+    from pipeline.enhance.training.data import noisy_along_normals
     from tests.pipeline.enhance.conftest import sphere
 
     noisy = noisy_along_normals(sphere(0.5, 24), 0.01, np.random.default_rng(0))
@@ -147,7 +147,7 @@ def test_progress_names_every_stage_in_order_and_ends_at_one() -> None:
 
 def _outside_share(mesh: TriangleMesh) -> float:
     """Share of faces outside the remesh stage's angle criteria."""
-    from pipeline.remesh import RemeshConfig, angle_stats
+    from pipeline.reconstruct.remesh.isotropic import RemeshConfig, angle_stats
 
     angles = angle_stats(mesh.vertices_m, mesh.faces, RemeshConfig())
     return angles["share_below_min"] + angles["share_above_max"]
@@ -167,8 +167,8 @@ def test_the_light_remesh_drops_the_kernel_where_it_adds_bad_faces(shape: str) -
         light_remesh,
         on_light_remesh_grid,
     )
-    from pipeline.mesh import mean_edge_length_m
-    from pipeline.remesh import RemeshConfig, remesh
+    from pipeline.geometry.mesh import mean_edge_length_m
+    from pipeline.reconstruct.remesh.isotropic import RemeshConfig, remesh
 
     if shape == "jittered sphere":
         s = trimesh.creation.icosphere(4)
@@ -217,8 +217,8 @@ def test_the_view_update_ends_with_the_normal_filter() -> None:
     (`ldm_4_steps_no_normal_filter`): on this sphere, since the refinement starts from the
     selector's averaged weights (twenty-second session), the update leaves it nothing to take
     (0.37360 mm radial RMS without it, 0.37363 with it)."""
-    from pipeline.enhance.data import noisy_along_normals
-    from pipeline.enhance.normal_filter import normal_filter
+    from pipeline.enhance.training.data import noisy_along_normals
+    from pipeline.enhance.update.normal_filter import normal_filter
     from tests.pipeline.enhance.conftest import sphere
 
     # Edges short against the radius, as the filter assumes (2.5 cm on a 0.5 m sphere).
@@ -241,8 +241,8 @@ def test_the_view_update_ends_with_the_normal_filter() -> None:
                          [("regressor", 0), ("selector", 0), ("regressor", 2)])
 def test_the_result_depends_on_the_surface_not_on_how_it_is_listed(
         method: str, remesh_iterations: int) -> None:
-    from pipeline.enhance.data import noisy_along_normals
-    from pipeline.mesh_order import MeshOrder, reordered
+    from pipeline.enhance.training.data import noisy_along_normals
+    from pipeline.geometry.order import MeshOrder, reordered
     from tests.pipeline.enhance.conftest import sphere
 
     # The stages run in a canonical order of their own (`mesh_order`) and hand back the
@@ -323,7 +323,7 @@ def test_the_cuda_path_gives_one_mesh_whatever_the_run_or_the_listing(
     2.5e-8 m, which the depth networks' TF32 convolutions carry on. So a worker gives one mesh for
     one input from its second job on, and the first job's differs by far less than the
     result's 0.6 mm C2M RMS; the bound here is 10x the measured difference."""
-    from pipeline.mesh_order import MeshOrder, reordered
+    from pipeline.geometry.order import MeshOrder, reordered
 
     _, noisy = noisy_sphere
     rng = np.random.default_rng(1)

@@ -4,8 +4,9 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.enhance.data import procedural_meshes
-from pipeline.enhance.gain_training import (
+from pipeline.enhance.models.vertex_gain import VertexGainConfig
+from pipeline.enhance.training.data import procedural_meshes
+from pipeline.enhance.training.gain import (
     GainExample,
     GainTrainConfig,
     gain_examples,
@@ -13,8 +14,7 @@ from pipeline.enhance.gain_training import (
     train_gain,
     validate_gain,
 )
-from pipeline.enhance.models.vertex_gain import VertexGainConfig
-from pipeline.enhance.vertex_gain import GAIN_FEATURES
+from pipeline.enhance.update.vertex_gain import GAIN_FEATURES
 
 TINY = GainTrainConfig(model=VertexGainConfig(hidden=8), with_procedural=True, draws_per_mesh=1,
                        edge_fraction=(0.03, 0.04), resolution=32, vertices_per_draw=500,

@@ -8,9 +8,9 @@ import torch
 
 from pipeline.enhance import EnhanceConfig
 from pipeline.enhance.inference import dihedral, run_network
-from pipeline.enhance.loading import load_regressor, regressor_to_bytes, weights_to_bytes
 from pipeline.enhance.models.regressor import RefinedRegressor, RegressorConfig, ResidualUNet
-from pipeline.enhance.render import DepthRenders, make_views, render_depth, view_directions
+from pipeline.enhance.render.views import DepthRenders, make_views, render_depth, view_directions
+from pipeline.enhance.weights.loading import load_regressor, regressor_to_bytes, weights_to_bytes
 from tests.pipeline.enhance.conftest import sphere
 
 
@@ -77,9 +77,14 @@ def test_shipped_selector_beats_adaptive_twicing_where_flat_meets_sharp(kind):
     adaptive-twicing test (2 cm edges, ±4 cm noise). Such shapes were among its training
     meshes, though not this remesh and noise draw."""
     from pipeline.enhance import enhance_mesh
-    from pipeline.enhance.baselines import AdaptiveTwicingConfig, adaptive_twicing
-    from pipeline.enhance.data import isotropic, noisy_along_normals, procedural_meshes, unit_extent
     from pipeline.enhance.metrics import signed_c2m
+    from pipeline.enhance.training.data import (
+        isotropic,
+        noisy_along_normals,
+        procedural_meshes,
+        unit_extent,
+    )
+    from pipeline.geometry.smoothing import AdaptiveTwicingConfig, adaptive_twicing
 
     name, mesh = procedural_meshes(np.random.default_rng(0), 5)[kind]
     clean = isotropic(unit_extent(mesh, name), 0.02)

@@ -3,8 +3,12 @@
 import pytest
 import torch
 
-from pipeline.enhance.loading import interpolated_weights, load_regressor, regressor_to_bytes
 from pipeline.enhance.models.regressor import RegressorConfig, ResidualUNet
+from pipeline.enhance.weights.loading import (
+    interpolated_weights,
+    load_regressor,
+    regressor_to_bytes,
+)
 
 
 def _regressor_bytes(seed: int, channels: tuple[int, ...] = (4, 8)) -> bytes:

@@ -4,7 +4,7 @@ device."""
 import pytest
 import torch
 
-from pipeline.enhance.loading import weights_from_bytes, weights_to_bytes
+from pipeline.enhance.weights.loading import weights_from_bytes, weights_to_bytes
 
 
 def _mixed_state() -> dict[str, torch.Tensor]:

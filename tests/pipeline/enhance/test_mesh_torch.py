@@ -10,10 +10,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pipeline.enhance import mesh_torch
-from pipeline.enhance.baselines import mean_operator
-from pipeline.enhance.data import noisy_along_normals
-from pipeline.mesh import TriangleMesh, mean_edge_length_m, vertex_normals
-from pipeline.mesh_repair import triangle_angles_deg
+from pipeline.enhance.training.data import noisy_along_normals
+from pipeline.geometry.mesh import TriangleMesh, mean_edge_length_m, vertex_normals
+from pipeline.geometry.repair import triangle_angles_deg
+from pipeline.geometry.smoothing import mean_operator
 from tests.pipeline.enhance.conftest import sphere
 
 
@@ -80,7 +80,7 @@ def test_angles_are_mesh_repairs(mesh: TriangleMesh) -> None:
 @settings(max_examples=25, deadline=None)
 @given(mesh=MESHES)
 def test_faces_sharing_vertices_is_mesh_repairs_pattern(mesh: TriangleMesh) -> None:
-    from pipeline.mesh_repair import faces_sharing_vertices
+    from pipeline.geometry.repair import faces_sharing_vertices
 
     expected = faces_sharing_vertices(mesh.faces, mesh.vertex_count).tocsr()
     expected.sort_indices()
@@ -92,7 +92,7 @@ def test_faces_sharing_vertices_is_mesh_repairs_pattern(mesh: TriangleMesh) -> N
 @settings(max_examples=25, deadline=None)
 @given(mesh=MESHES)
 def test_boundary_half_edges_are_boundarys(mesh: TriangleMesh) -> None:
-    from pipeline.enhance.boundary import boundary_half_edges
+    from pipeline.geometry.boundary import boundary_half_edges
 
     got = mesh_torch.boundary_half_edges(_faces(mesh), mesh.vertex_count)
     np.testing.assert_array_equal(got.numpy(), boundary_half_edges(mesh.faces))

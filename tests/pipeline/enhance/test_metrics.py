@@ -18,7 +18,7 @@ from tests.pipeline.enhance.conftest import sphere
 def test_offset_along_normals_gives_signed_distance(offset_m):
     """Points pushed out (in) along face normals by d are +d (-d) away: the C2M sign."""
     truth = sphere(0.5, 16)
-    from pipeline.mesh import face_normals
+    from pipeline.geometry.mesh import face_normals
 
     tri = truth.vertices_m[truth.faces]
     centroids = tri.mean(axis=1)

@@ -11,7 +11,7 @@ from pipeline.enhance.config import EnhanceConfig
 from pipeline.enhance.enhancement import enhance_mesh
 from pipeline.enhance.networks import load_networks, networks_key, uses_gain, uses_selector
 from pipeline.enhance.weights import shipped_bytes
-from pipeline.mesh import TriangleMesh
+from pipeline.geometry.mesh import TriangleMesh
 
 SMALL = EnhanceConfig(resolution=48, remesh_iterations=0, min_noise_ratio=0.0, device="cpu")
 

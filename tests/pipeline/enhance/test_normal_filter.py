@@ -3,17 +3,17 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.enhance.baselines import laplacian_smooth
-from pipeline.enhance.data import noisy_along_normals
-from pipeline.enhance.normal_filter import (
+from pipeline.enhance.training.data import noisy_along_normals
+from pipeline.enhance.update.normal_filter import (
     NormalFilterConfig,
     face_neighbours,
     filtered_normals,
     fit_to_normals,
     normal_filter,
 )
-from pipeline.mesh import TriangleMesh, face_normals, mean_edge_length_m
-from pipeline.mesh_repair import face_areas
+from pipeline.geometry.mesh import TriangleMesh, face_normals, mean_edge_length_m
+from pipeline.geometry.repair import face_areas
+from pipeline.geometry.smoothing import laplacian_smooth
 from tests.pipeline.enhance.conftest import radial_rms_m, sphere
 from tests.pipeline.enhance.test_boundary import grid
 

@@ -3,14 +3,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.enhance.render import (
+from pipeline.enhance.render.views import (
     DepthRenders,
     make_views,
     project,
     render_depth,
     view_directions,
 )
-from pipeline.mesh import TriangleMesh
+from pipeline.geometry.mesh import TriangleMesh
 
 
 def test_axis_views_first_then_spread():
@@ -126,7 +126,7 @@ def _open_bowl():
 def test_rasterizer_matches_ray_cast_on_sphere(unit_sphere, dtype):
     import torch
 
-    from pipeline.enhance.rasterize import rasterize_depth
+    from pipeline.enhance.render.rasterize import rasterize_depth
 
     mesh = _coloured(unit_sphere)
     views = make_views(mesh.vertices_m, view_directions(14), 64)
@@ -158,7 +158,7 @@ def test_rasterizer_drops_what_lies_before_the_near_plane():
 
 
 def test_rasterizer_chunks_give_the_same_renders():
-    from pipeline.enhance.rasterize import rasterize_depth
+    from pipeline.enhance.render.rasterize import rasterize_depth
 
     mesh = _coloured(_open_bowl())
     views = make_views(mesh.vertices_m, view_directions(3), 40)

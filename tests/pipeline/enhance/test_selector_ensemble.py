@@ -2,11 +2,15 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.enhance.loading import load_selector, selector_ensemble_to_bytes, weights_to_bytes
 from pipeline.enhance.models.twicing_selector import (
     SelectorConfig,
     SelectorEnsemble,
     TwicingSelector,
+)
+from pipeline.enhance.weights.loading import (
+    load_selector,
+    selector_ensemble_to_bytes,
+    weights_to_bytes,
 )
 
 SMALL = SelectorConfig(iterations=(2, 5, 10), pilot_iterations=5, feature_rings=(0, 3), hidden=8)

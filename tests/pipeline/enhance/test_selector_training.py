@@ -2,9 +2,9 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.enhance.data import procedural_meshes
 from pipeline.enhance.models.twicing_selector import SelectorConfig, TwicingSelector
-from pipeline.enhance.selector_training import (
+from pipeline.enhance.training.data import procedural_meshes
+from pipeline.enhance.training.selector import (
     SelectorTrainConfig,
     blend_loss,
     selector_examples,

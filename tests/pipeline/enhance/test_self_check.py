@@ -12,14 +12,14 @@ from hypothesis import strategies as st
 
 from pipeline.enhance import EnhanceConfig, enhance_mesh
 from pipeline.enhance.enhancement import CHECKED_STAGE_PROGRESS
-from pipeline.enhance.normal_filter import normal_filter
 from pipeline.enhance.self_check import (
     SelfCheck,
     residuals_m,
     scored,
     simulated_copy,
 )
-from pipeline.mesh import TriangleMesh, vertex_normals
+from pipeline.enhance.update.normal_filter import normal_filter
+from pipeline.geometry.mesh import TriangleMesh, vertex_normals
 from tests.pipeline.enhance.conftest import sphere
 
 SPHERE = sphere(resolution=12)
@@ -74,8 +74,8 @@ def _harmful_regressor() -> bytes:
     makes every mesh worse."""
     import torch
 
-    from pipeline.enhance.loading import load_regressor, regressor_to_bytes
     from pipeline.enhance.weights import shipped_bytes
+    from pipeline.enhance.weights.loading import load_regressor, regressor_to_bytes
 
     model = load_regressor(shipped_bytes("regressor"))
     with torch.no_grad():
@@ -88,7 +88,7 @@ def _harmful_regressor() -> bytes:
 def _classical(noisy: TriangleMesh, config: EnhanceConfig) -> TriangleMesh:
     """The selector's base, then the normal filter, in the spatial order the stages use (the
     selector's blend differs by up to 6e-5 m in another order)."""
-    from pipeline.mesh_order import reordered, restored, spatial_order
+    from pipeline.geometry.order import reordered, restored, spatial_order
 
     order = spatial_order(noisy)
     base = enhance_mesh(reordered(noisy, order), replace(config, method="selector"))

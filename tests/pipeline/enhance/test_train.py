@@ -7,22 +7,22 @@ import pytest
 import torch
 
 from pipeline.enhance import EnhanceConfig, enhance_mesh
-from pipeline.enhance.data import (
-    DataConfig,
-    make_pairs,
-    procedural_meshes,
-    same_surface_mask,
-)
-from pipeline.enhance.loading import weights_from_bytes, weights_to_bytes
 from pipeline.enhance.pipelines.depth_ldm import (
     LDMModels,
     enhance_depth_ldm,
     latent_shape,
     sample_depth,
 )
-from pipeline.enhance.train import train_finetune, train_ldm, train_regressor, train_vae
-from pipeline.enhance.train_config import CONFIGS, StageBudget
-from pipeline.enhance.train_loop import checkpoint_from_bytes, checkpoint_to_bytes
+from pipeline.enhance.training.config import CONFIGS, StageBudget
+from pipeline.enhance.training.data import (
+    DataConfig,
+    make_pairs,
+    procedural_meshes,
+    same_surface_mask,
+)
+from pipeline.enhance.training.loop import checkpoint_from_bytes, checkpoint_to_bytes
+from pipeline.enhance.training.stages import train_finetune, train_ldm, train_regressor, train_vae
+from pipeline.enhance.weights.loading import weights_from_bytes, weights_to_bytes
 from tests.pipeline.enhance.conftest import ramp_pairs, sphere
 
 TINY = CONFIGS["tiny"]
@@ -114,7 +114,7 @@ def test_weights_round_trip_with_config():
 
 
 def test_tiny_models_enhance_a_mesh_deterministically(pairs):
-    from pipeline.enhance.loading import ldm_to_bytes
+    from pipeline.enhance.weights.loading import ldm_to_bytes
 
     dev = torch.device("cpu")
     reg, _ = train_regressor(pairs, TINY, 0, dev)
@@ -173,7 +173,7 @@ def test_finetuning_trains_every_part_through_the_sampler(pairs):
 
 
 def test_training_meshes_are_remeshed_isotropically():
-    from pipeline.enhance.data import isotropic
+    from pipeline.enhance.training.data import isotropic
 
     mesh = procedural_meshes(np.random.default_rng(3), 5)[2][1]  # a stretched box
     out = isotropic(mesh, 0.05)
@@ -202,8 +202,8 @@ def test_vae_weights_reload_with_their_config():
     """What `volumesh train --resume` does with a finished VAE stage."""
     from dataclasses import asdict
 
-    from pipeline.enhance.loading import load_vae
     from pipeline.enhance.models.vae import DepthVAE, VAEConfig
+    from pipeline.enhance.weights.loading import load_vae
 
     cfg = VAEConfig(channels=(8, 8, 16, 16), initial_logvar=-3.0)
     vae = DepthVAE(cfg)
@@ -236,7 +236,7 @@ def test_surface_mask_drops_pixels_where_either_input_sees_another_surface():
 
 
 def test_bulk_scores_leave_out_what_the_tight_mask_drops(pairs):
-    from pipeline.enhance.validate import depth_scores
+    from pipeline.enhance.training.validate import depth_scores
 
     idx = np.arange(len(pairs.source))
     pred = pairs.clean_n[idx].copy()
@@ -294,7 +294,7 @@ def test_finetuning_a_refining_ldm_leaves_its_regressor_alone(pairs):
 
 
 def test_a_refining_ldm_round_trips_through_its_bytes_with_its_regressor(pairs):
-    from pipeline.enhance.loading import ldm_to_bytes, load_ldm
+    from pipeline.enhance.weights.loading import ldm_to_bytes, load_ldm
 
     dev = torch.device("cpu")
     reg, _ = train_regressor(pairs, TINY, 0, dev)
@@ -316,7 +316,7 @@ def test_a_refining_ldm_round_trips_through_its_bytes_with_its_regressor(pairs):
 def test_depth_scores_normal_error_discounts_slanted_pixels(pairs):
     """A uniform depth offset is the plain RMSE everywhere; along the normals, as the mesh
     update sees it, slanted pixels count for less, so it is smaller but of its size."""
-    from pipeline.enhance.validate import depth_scores
+    from pipeline.enhance.training.validate import depth_scores
 
     idx = np.arange(len(pairs.source))
     scores = depth_scores(pairs.clean_n[idx] + 0.002, pairs, idx)

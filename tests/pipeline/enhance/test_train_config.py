@@ -4,7 +4,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from pipeline.enhance.train_config import CONFIGS, capped, scaled, with_lr
+from pipeline.enhance.training.config import CONFIGS, capped, scaled, with_lr
 
 
 def _budgets(config):

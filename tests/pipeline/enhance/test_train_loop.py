@@ -10,9 +10,9 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.enhance.data import same_surface_mask
-from pipeline.enhance.train_config import StageBudget
-from pipeline.enhance.train_loop import (
+from pipeline.enhance.training.config import StageBudget
+from pipeline.enhance.training.data import same_surface_mask
+from pipeline.enhance.training.loop import (
     CropSampler,
     _learning_rate,
     checkpoint_from_bytes,

@@ -3,14 +3,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.enhance.baselines import twicing_smooth
-from pipeline.enhance.data import noisy_along_normals
-from pipeline.enhance.twicing_blend import (
+from pipeline.enhance.presmooth.scale_selection import (
     TwicingBlendConfig,
     _twicing_polynomial,
     blend,
     twicing_candidates,
 )
+from pipeline.enhance.training.data import noisy_along_normals
+from pipeline.geometry.smoothing import twicing_smooth
 from tests.pipeline.enhance.conftest import sphere
 
 SMALL = TwicingBlendConfig(iterations=(2, 5, 10), pilot_iterations=5, feature_rings=(0, 3))

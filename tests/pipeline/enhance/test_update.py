@@ -3,9 +3,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.enhance.render import make_views, render_depth, view_directions
-from pipeline.enhance.update import UpdateConfig, unfolded, update_vertices
-from pipeline.mesh import face_normals
+from pipeline.enhance.render.views import make_views, render_depth, view_directions
+from pipeline.enhance.update.steps import UpdateConfig, unfolded, update_vertices
+from pipeline.geometry.mesh import face_normals
 from tests.pipeline.enhance.conftest import radial_rms_m, sphere
 
 
@@ -121,7 +121,7 @@ def test_a_move_that_turns_a_face_over_is_put_back_and_a_harmless_one_kept():
 def test_a_uniform_vertex_gain_moves_as_far_as_that_share_of_the_change(noisy_sphere):
     """Following the change, a vertex gain g on every vertex moves the mesh as the depth change
     scaled by g does (the step is linear in the change); gain 1 is no gain at all."""
-    from pipeline.enhance.update import apply_view_steps, view_steps
+    from pipeline.enhance.update.steps import apply_view_steps, view_steps
 
     _, noisy = noisy_sphere
     views = make_views(noisy.vertices_m, view_directions(6), 128)
@@ -163,7 +163,7 @@ def _close_where_both_see(numpy_steps, torch_steps):
 
 @pytest.mark.parametrize("follow_change", [False, True])
 def test_torch_view_steps_are_the_numpy_ones(noisy_sphere, follow_change):
-    from pipeline.enhance.update import view_steps
+    from pipeline.enhance.update.steps import view_steps
 
     _, noisy = noisy_sphere
     views = make_views(noisy.vertices_m, view_directions(6), 128)
@@ -184,8 +184,8 @@ def test_torch_view_steps_are_the_numpy_ones(noisy_sphere, follow_change):
 def test_torch_update_moves_the_vertices_as_numpy_does(follow_moves):
     """Two views of a noisy sphere leave its back unseen (smoothed from the seen), a large
     correction folds faces (put back), and a vertex gain scales the moves."""
-    from pipeline.enhance.data import noisy_along_normals
-    from pipeline.enhance.update import apply_view_steps, view_steps
+    from pipeline.enhance.training.data import noisy_along_normals
+    from pipeline.enhance.update.steps import apply_view_steps, view_steps
 
     noisy = noisy_along_normals(sphere(0.5, 40), 0.01, np.random.default_rng(2))
     views = make_views(noisy.vertices_m, view_directions(2), 96)
@@ -214,8 +214,8 @@ def test_torch_bilinear_is_the_numpy_one():
     and at exact half pixels (where rounding to the nearest must pick the even one)."""
     import torch
 
-    from pipeline.enhance.update import _bilinear
-    from pipeline.enhance.update_torch import Pixels, bilinear
+    from pipeline.enhance.update.steps import _bilinear
+    from pipeline.enhance.update.steps_torch import Pixels, bilinear
 
     rng = np.random.default_rng(5)
     images = rng.uniform(0, 1, (3, 16, 16)).astype(np.float32)
@@ -242,7 +242,7 @@ def test_torch_bilinear_is_the_numpy_one():
 def test_torch_unfolded_is_the_numpy_one(seed, scale_m):
     import torch
 
-    from pipeline.enhance.update_torch import unfolded as unfolded_torch
+    from pipeline.enhance.update.steps_torch import unfolded as unfolded_torch
 
     mesh = sphere(0.5, 12)
     before = mesh.vertices_m

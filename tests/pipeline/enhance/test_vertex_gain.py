@@ -5,8 +5,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from pipeline.enhance.models.vertex_gain import VertexGainConfig, VertexGainNet
-from pipeline.enhance.update import ViewSteps
-from pipeline.enhance.vertex_gain import GAIN_FEATURES, MEAN_STEP, gain_features
+from pipeline.enhance.update.steps import ViewSteps
+from pipeline.enhance.update.vertex_gain import GAIN_FEATURES, MEAN_STEP, gain_features
 
 AXES = np.array([[0, 0, -1], [0, 0, 1], [-1, 0, 0], [1, 0, 0], [0, -1, 0], [0, 1, 0]], float)
 

@@ -18,11 +18,11 @@ from hypothesis import strategies as st
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from pipeline.geometry.mesh import TriangleMesh, vertex_normals
 from pipeline.io.glb_format import DRACO_EXTENSION
 from pipeline.io.gltf_io import DracoConfig, encode_glb, simplify, write_glb, write_mesh
 from pipeline.io.gltf_read import decode_glb
 from pipeline.io.mesh_io import read_mesh
-from pipeline.mesh import TriangleMesh, vertex_normals
 
 REPO = Path(__file__).resolve().parents[3]
 VALIDATOR = REPO / "tests" / "js" / "validate_gltf.mjs"

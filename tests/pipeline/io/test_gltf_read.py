@@ -9,10 +9,10 @@ import struct
 import numpy as np
 import pytest
 
+from pipeline.geometry.mesh import TriangleMesh
 from pipeline.io.glb_format import CHUNK_BIN, CHUNK_JSON, FLOAT, GLB_MAGIC, UINT, USHORT
 from pipeline.io.gltf_io import encode_glb
 from pipeline.io.gltf_read import decode_glb
-from pipeline.mesh import TriangleMesh
 
 TRIANGLE_M = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], dtype=np.float32)
 

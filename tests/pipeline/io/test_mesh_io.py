@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import trimesh
 
+from pipeline.geometry.mesh import TriangleMesh, vertex_normals
 from pipeline.io.mesh_io import read_mesh, write_ply
-from pipeline.mesh import TriangleMesh, vertex_normals
 
 BUNNY = Path(__file__).resolve().parents[4] / "shared" / "data" / "meshes" / "stanford-bunny.obj"
 

@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pipeline.capture import Intrinsics
-from pipeline.mesh import TriangleMesh
+from pipeline.geometry.mesh import TriangleMesh
 from pipeline.synth.render import MeshRaycaster, pixel_rays, render_depth, shade_color
 from pipeline.synth.rig import look_at
 from pipeline.synth.shapes import uv_sphere_mesh

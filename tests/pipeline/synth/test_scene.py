@@ -13,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pipeline.capture import View
-from pipeline.mesh import TriangleMesh
+from pipeline.geometry.mesh import TriangleMesh
 from pipeline.synth.render import pixel_rays
 from pipeline.synth.rig import RigConfig, rig_cameras
 from pipeline.synth.scene import (

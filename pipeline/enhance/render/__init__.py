@@ -1,0 +1,1 @@
+"""Orthographic depth renders of a mesh from several directions."""

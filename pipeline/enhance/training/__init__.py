@@ -1,0 +1,1 @@
+"""Training the enhancement's networks: data, stages, loops and the per-vertex networks' fits."""

@@ -1,0 +1,2 @@
+"""Moving vertices to the corrected depth: the view steps, each vertex's gain, the bilateral normal
+filter."""

@@ -1,0 +1,2 @@
+"""The remesh stage: isotropic remeshing (its kernel in child processes, in spatial pieces), long
+boundary edges split first, angles cleaned up after, and the speculative remesh."""
