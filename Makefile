@@ -7,7 +7,7 @@ APT_PACKAGES := libusb-1.0-0 libgomp1 redis-server chromium docker-compose
 HOST ?= 127.0.0.1
 PORT ?= 8000
 
-.PHONY: setup run test lint unit bench clean stage-settings
+.PHONY: setup run test lint unit bench clean stage-settings settings-table
 
 setup: $(VENV)/.installed node_modules/.installed .apt-installed
 
@@ -38,6 +38,9 @@ run: setup
 
 stage-settings: setup  ## the gateway's copy of the pipeline's job option settings
 	$(VENV)/bin/python -c "import json; from pipeline.stage_config import settings_kinds; print(json.dumps(settings_kinds(), indent=1, sort_keys=True))" > app/core/stage_settings.json
+
+settings-table: setup  ## README's configuration table (between its settings markers)
+	@$(PY) -m workers.settings_table
 
 lint: setup
 	$(VENV)/bin/ruff check .

@@ -1,6 +1,6 @@
 """The light remesh's angle clean-up on a patch around the faces outside the criteria
-(`enforce_angles`, as the pipeline runs it) against its passes over the whole mesh (how it ran
-before the twenty-fifth session); prints JSON.
+(`enforce_angles`, as the pipeline runs it) against its passes over the whole mesh, which the
+patch is held equal to; prints JSON.
 
     .venv/bin/python benchmarks/angle_cleanup.py [--mesh NAME] [--repeats N]
 

@@ -6,7 +6,7 @@ Each run renders a synthetic calibration capture (the 8-camera Azure Kinect rig,
 colour cameras with lens distortion, image noise and blur, depth noise), writes it in capture
 format v1, calibrates it from disk as `volumesh calibrate` does and compares the poses with the
 truth after a rigid fit over the camera centres. Prints one JSON object; `targets` says whether
-the issue's figures are met (median rotation <= 0.05 deg, median translation <= 1 mm,
+the calibration's targets are met (median rotation <= 0.05 deg, median translation <= 1 mm,
 max translation <= 3 mm, <= 60 s for 8 cameras x 30 frames).
 """
 

@@ -4,12 +4,12 @@ the boundary split's rounds near the long edges against rounds over every face; 
     .venv/bin/python benchmarks/remesh_speed.py [--mesh NAME] [--repeats N] [--pieces N ...]
 
 Each variant also runs `_started_ahead`, as `enhance_mesh` runs it: the kernel's children
-started a second before (`remesh_kernel.kernel_children`), while the stages before the remesh
+started a second before (`kernel.kernel_children`), while the stages before the remesh
 run. The input is what `enhance_mesh` hands the light remesh: the LDM's update of a protocol
 mesh (`bunny_protocol`, the LDM at 4 steps with no remesh), in a spatial order. Each variant
 runs `repeats` times, alternating, in this process after one warm-up call; the C2M figures
 of both remeshes against the protocol's truth say whether the pieces cost anything. Last,
-the remesh started ahead of the update (`remesh_ahead`, the default on a GPU): its start,
+the speculative remesh, started ahead of the update (the default on a GPU): its start,
 and its finish `--overlap` seconds later (`ahead_seconds`).
 
     .venv/bin/python benchmarks/remesh_speed.py [--overlap S]
@@ -72,9 +72,9 @@ def timed_remesh(mesh: TriangleMesh, config: RemeshConfig, ahead: bool) -> tuple
 
 def timed_ahead(mesh: TriangleMesh, config: RemeshConfig, overlap_s: float
                 ) -> tuple[float, float, float]:
-    """Seconds of `remesh_ahead`'s start and finish, and the finish's wait for the kernel, as
-    `enhance_mesh` runs them on a GPU: children started a second before, the start on the
-    mesh the update will move (its faces checked beforehand, beside the render:
+    """Seconds of the speculative remesh's start and finish, and the finish's wait for the
+    kernel, as `enhance_mesh` runs them on a GPU: children started a second before, the start
+    on the mesh the update will move (its faces checked beforehand, beside the render:
     `checked_faces`), the finish `overlap_s` later (the networks and the update) on the moved
     mesh. Here the mesh does not move: the times do not depend on it."""
     count = kernel_piece_count(mesh.face_count, config.kernel_processes)

@@ -48,8 +48,8 @@ class ReconstructConfig:
     frame_index: int | None = None
     """The capture frame to reconstruct; None: the first one."""
     enhance: bool = False
-    """Run the enhance stage. Off by default: the shipped model does not yet improve a
-    reconstruction (README, issue 4)."""
+    """Run the enhance stage. Off by default: the shipped model does not improve a
+    reconstruction yet (see the README)."""
     enhancement: EnhanceConfig = field(default_factory=EnhanceConfig)
     """How the enhance stage works (method, views, resolution, DDIM steps...)."""
     world_from_depth: tuple[tuple[str, tuple[float, ...]], ...] = ()
@@ -64,6 +64,21 @@ class ReconstructConfig:
 
 _SECTIONS = {"depth_filter", "align", "registration", "crop", "voxel_refine",
              "meshing", "remesh", "enhancement", "colorize"}
+CALIBRATION_SECTION = "calibration"
+"""The job option section of the calibrate stage (`pipeline.calibration.CalibrationConfig`)."""
+SERVICE_OPTIONS = frozenset({"rig_id", "calibration_capture_id", "rig_name", "calibrate_only",
+                             CALIBRATION_SECTION})
+"""Job options that say where a job's camera poses come from (a saved rig, or a calibration
+capture and its settings); the service acts on them, the reconstruction config holds none."""
+EXPORT_OPTION_PREFIX = "draco_"
+"""Job options named so configure the export (the GLB's Draco compression), not the
+reconstruction."""
+
+
+def reconstruction_options(options: Mapping[str, Any]) -> dict[str, Any]:
+    """The job options `config_from_options` reads: all but the service's and the export's."""
+    return {key: value for key, value in options.items()
+            if not key.startswith(EXPORT_OPTION_PREFIX) and key not in SERVICE_OPTIONS}
 
 
 def _coerce(value: Any, current: Any, name: str) -> Any:
@@ -178,7 +193,7 @@ def settings_kinds() -> dict[str, dict[str, str]]:
     from pipeline.calibration import CalibrationConfig
 
     sections = {name: getattr(ReconstructConfig(), name) for name in sorted(_SECTIONS)}
-    sections["calibration"] = CalibrationConfig()
+    sections[CALIBRATION_SECTION] = CalibrationConfig()
     return {name: {f.name: _kind(getattr(section, f.name))
                    for f in dataclasses.fields(section)}
             for name, section in sorted(sections.items())}

@@ -22,50 +22,48 @@ Each stage may also write ``stats_<stage>``: a 0-d string array holding JSON fig
 from __future__ import annotations
 
 import dataclasses
-import json
 import resource
 import time
 from collections.abc import Callable, Mapping
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.capture import CameraInfo, CaptureMeta, View
+from pipeline.capture import CameraInfo, CaptureMeta
 from pipeline.geometry.mesh import TriangleMesh, vertex_normals
 from pipeline.reconstruct.align import DepthView, apply_offsets, estimate_corrections
 from pipeline.reconstruct.colorize import ColorView, colorize_mesh
 from pipeline.reconstruct.crop import crop_mask
 from pipeline.reconstruct.depth_filter import filter_depth
 from pipeline.reconstruct.meshing import mesh_cloud
-from pipeline.reconstruct.quality import signed_distances_m
 from pipeline.reconstruct.registration import ray_image, register_view
 from pipeline.reconstruct.remesh.isotropic import remesh
 from pipeline.reconstruct.voxel_refine import refine_mask
+from pipeline.stage_artifacts import (
+    Artifacts,
+    CaptureReader,
+    NetworksSource,
+    Progress,
+    mesh_from_artifacts,
+    require_keys,
+    stage_stats,
+    stats_artifact,
+    tick,
+)
 from pipeline.stage_config import ReconstructConfig, config_hash
-
-if TYPE_CHECKING:
-    from pipeline.enhance.networks import EnhanceNetworks
-
-Progress = Callable[[float], None]
-Artifacts = dict[str, NDArray[Any]]
-NetworksSource = Callable[[], "EnhanceNetworks"]
-"""Gives the enhance stage's networks when it needs them: a worker's kept set, loaded only
-for a mesh that is enhanced (`WorkerContext.enhance_networks`)."""
+from pipeline.stage_enhance import stage_enhance
 
 STAGES: tuple[str, ...] = ("filter", "align", "register", "refine", "mesh", "remesh",
                            "enhance", "colorize")
 ENHANCE_STAGE = "enhance"
-
-
-class CaptureReader(Protocol):
-    """What the stages need of :class:`pipeline.io.capture_io.CaptureReader`."""
-
-    @property
-    def meta(self) -> CaptureMeta: ...
-
-    def read_view(self, camera_id: str, frame_index: int, *, with_color: bool = True
-                  ) -> View: ...
+SECTION_FIRST_STAGE: dict[str, str] = {
+    "depth_filter": "filter", "align": "align", "registration": "register",
+    "crop": "register", "voxel_refine": "refine", "meshing": "mesh", "remesh": "remesh",
+    "enhance": "enhance", "enhancement": "enhance", "colorize": "colorize"}
+"""The first stage that reads each `ReconstructConfig` field. A field missing here counts as
+read by every stage (stored outputs are then reused less, never wrongly); one whose reader is
+not planned, by none."""
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -126,23 +124,6 @@ def _depths(inputs: Mapping[str, NDArray[Any]], cameras: list[CameraInfo]
             from None
 
 
-def _require(inputs: Mapping[str, NDArray[Any]], keys: tuple[str, ...], stage: str
-             ) -> list[NDArray[Any]]:
-    missing = [k for k in keys if k not in inputs]
-    if missing:
-        raise ValueError(f"inputs: stage {stage} needs artifact {missing[0]!r}")
-    return [inputs[k] for k in keys]
-
-
-def _stats(stage: str, figures: Mapping[str, Any]) -> Artifacts:
-    return {f"stats_{stage}": np.array(json.dumps(figures, default=float))}
-
-
-def _tick(progress: Progress | None, fraction: float) -> None:
-    if progress is not None:
-        progress(min(max(fraction, 0.0), 1.0))
-
-
 # ----------------------------------------------------------------------------- stages
 
 def _stage_filter(capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],
@@ -156,8 +137,8 @@ def _stage_filter(capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],
         depth = filter_depth(view.depth_m, cam.depth_intrinsics.fx, config.depth_filter)
         out[f"depth_m_{k}"] = depth
         valid += int(np.count_nonzero(depth))
-        _tick(progress, (k + 1) / len(cameras))
-    return out | _stats("filter", {"frame_index": frame, "valid_pixels": valid})
+        tick(progress, (k + 1) / len(cameras))
+    return out | stats_artifact("filter", {"frame_index": frame, "valid_pixels": valid})
 
 
 def _stage_align(capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],
@@ -167,7 +148,7 @@ def _stage_align(capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],
     views = [DepthView(d, cam.depth_intrinsics, np.asarray(cam.world_from_depth))
              for d, cam in zip(depths, cameras, strict=True)]
     found = estimate_corrections(views, config.align)
-    _tick(progress, 0.8)
+    tick(progress, 0.8)
     out: Artifacts = {"depth_offset_m": found.offsets_m,
                       "world_from_depth": found.world_from_depth}
     for k, (depth, cam) in enumerate(zip(depths, cameras, strict=True)):
@@ -181,7 +162,7 @@ def _stage_align(capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],
                                                4),
                          "translation_mm": round(float(np.linalg.norm(
                              pose[:3, 3] - before[:3, 3])) * 1e3, 3)}
-    return out | _stats("align", {
+    return out | stats_artifact("align", {
         "depth_offset_mm": {c.id: round(float(o) * 1e3, 3)
                             for c, o in zip(cameras, found.offsets_m, strict=True)},
         "pose_change": moved})
@@ -206,7 +187,7 @@ def _stage_register(capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],
         index.append(np.full(len(pts.points_world), k, dtype=np.int32))
         if pts.colors is not None:
             colors.append(pts.colors)
-        _tick(progress, (k + 1) / len(cameras))
+        tick(progress, (k + 1) / len(cameras))
     points_world = np.vstack(points)
     normals_world = np.vstack(normals).astype(np.float32)
     poses = [np.asarray(c.world_from_depth, dtype=np.float64) for c in cameras]
@@ -218,7 +199,7 @@ def _stage_register(capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],
                       "camera_index": np.concatenate(index)[keep]}
     if all_colored:
         out["point_colors"] = np.vstack(colors).astype(np.uint8)[keep]
-    return out | _stats("register", {"points": int(keep.sum()),
+    return out | stats_artifact("register", {"points": int(keep.sum()),
                                      "cropped_points": int((~keep).sum()),
                                      "floor_y_m": floor_y})
 
@@ -226,7 +207,7 @@ def _stage_register(capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],
 def _stage_refine(capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],
                   config: ReconstructConfig, progress: Progress | None) -> Artifacts:
     cameras = _cameras(capture, config, inputs)
-    points, normals, index = _require(inputs, ("points_world", "normals_world",
+    points, normals, index = require_keys(inputs, ("points_world", "normals_world",
                                                "camera_index"), "refine")
     centres = np.array([np.asarray(c.world_from_depth)[:3, 3] for c in cameras])
     keep = refine_mask(np.asarray(points, dtype=np.float64), index.astype(np.int64), centres,
@@ -235,59 +216,28 @@ def _stage_refine(capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],
                       "camera_index": index[keep]}
     if "point_colors" in inputs:
         out["point_colors"] = inputs["point_colors"][keep]
-    _tick(progress, 1.0)
-    return out | _stats("refine", {"points": int(keep.sum())})
+    tick(progress, 1.0)
+    return out | stats_artifact("refine", {"points": int(keep.sum())})
 
 
 def _stage_mesh(capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],
                 config: ReconstructConfig, progress: Progress | None) -> Artifacts:
-    points, normals = _require(inputs, ("points_world", "normals_world"), "mesh")
+    points, normals = require_keys(inputs, ("points_world", "normals_world"), "mesh")
     mesh, samples = mesh_cloud(np.asarray(points, dtype=np.float64),
                                np.asarray(normals, dtype=np.float32), config.meshing)
-    _tick(progress, 1.0)
+    tick(progress, 1.0)
     out: Artifacts = {"vertices_m": mesh.vertices_m, "faces": mesh.faces}
-    return out | _stats("mesh", {"samples": samples, "triangles": mesh.face_count})
+    return out | stats_artifact("mesh", {"samples": samples, "triangles": mesh.face_count})
 
 
 def _stage_remesh(capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],
                   config: ReconstructConfig, progress: Progress | None) -> Artifacts:
     mesh = mesh_from_artifacts(inputs)
     out, stats = remesh(mesh, config.remesh)
-    _tick(progress, 1.0)
+    tick(progress, 1.0)
     stats["triangles"] = out.face_count
     result: Artifacts = {"vertices_m": out.vertices_m, "faces": out.faces}
-    return result | _stats("remesh", stats)
-
-
-def _stage_enhance(capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],
-                   config: ReconstructConfig, progress: Progress | None,
-                   networks: NetworksSource | None = None) -> Artifacts:
-    from pipeline.enhance import enhance_mesh
-    from pipeline.enhance.enhancement import past_the_gate, skipped_at
-    from pipeline.enhance.noise_level import noise_to_edge_ratio
-    from pipeline.enhance.self_check import SelfCheck
-
-    mesh = mesh_from_artifacts(inputs)
-    # Once for both figures and the gate (0.15 s on the bunny's 106 k vertices, 2 cores).
-    noise_ratio = noise_to_edge_ratio(mesh)
-    skipped = skipped_at(noise_ratio, config.enhancement)
-    # A clean mesh is left as `enhance_mesh` leaves it, without its networks (a fresh
-    # worker's first load took 2.2 s) or its renders.
-    checks: list[SelfCheck] = []
-    out = mesh if skipped else enhance_mesh(mesh, past_the_gate(config.enhancement), progress,
-                                            networks() if networks is not None else None,
-                                            checks.append)
-    _tick(progress, 1.0)
-    # The light remesh renumbers vertices: how far the surface moved is measured against
-    # the surface before, not vertex by vertex (a clean mesh has not moved).
-    offset_m = np.zeros(1) if skipped else np.abs(signed_distances_m(out.vertices_m, mesh))
-    result: Artifacts = {"vertices_m": out.vertices_m, "faces": out.faces}
-    return result | _stats("enhance", {
-        "method": config.enhancement.method, "views": config.enhancement.views,
-        "noise_ratio": noise_ratio, "skipped_as_clean": skipped,
-        "triangles": out.face_count, "mean_offset_m": float(offset_m.mean()),
-        "max_offset_m": float(offset_m.max()),
-        "self_check": checks[0].as_stats() if checks else None})
+    return result | stats_artifact("remesh", stats)
 
 
 def _stage_colorize(capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],
@@ -307,13 +257,13 @@ def _stage_colorize(capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],
                                 config.colorize, progress)
         assert colored.vertex_colors is not None
         out["vertex_colors"] = colored.vertex_colors
-    _tick(progress, 1.0)
-    return out | _stats("colorize", {"color_views": len(views)})
+    tick(progress, 1.0)
+    return out | stats_artifact("colorize", {"color_views": len(views)})
 
 
 _STAGE_FUNCTIONS = {"filter": _stage_filter, "align": _stage_align,
                     "register": _stage_register, "refine": _stage_refine,
-                    "mesh": _stage_mesh, "remesh": _stage_remesh, "enhance": _stage_enhance,
+                    "mesh": _stage_mesh, "remesh": _stage_remesh, "enhance": stage_enhance,
                     "colorize": _stage_colorize}
 
 
@@ -326,30 +276,8 @@ def run_stage(name: str, capture: CaptureReader, inputs: Mapping[str, NDArray[An
     if name not in _STAGE_FUNCTIONS:
         raise ValueError(f"stage: unknown stage {name!r} (stages: {', '.join(STAGES)})")
     if name == ENHANCE_STAGE:
-        return _stage_enhance(capture, inputs, config, progress, networks)
+        return stage_enhance(capture, inputs, config, progress, networks)
     return _STAGE_FUNCTIONS[name](capture, inputs, config, progress)
-
-
-def mesh_from_artifacts(artifacts: Mapping[str, NDArray[Any]]) -> TriangleMesh:
-    """The latest mesh in the merged artifacts (colours and normals when present)."""
-    vertices, faces = _require(artifacts, ("vertices_m", "faces"), "export")
-    vertices = np.asarray(vertices, dtype=np.float64)
-    faces = np.asarray(faces, dtype=np.int32)
-    if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
-        raise ValueError("artifacts: vertices_m and faces must be (V, 3) and (F, 3)")
-    colors = artifacts.get("vertex_colors")
-    normals = artifacts.get("vertex_normals")
-    ok_colors = colors is not None and len(colors) == len(vertices)
-    ok_normals = normals is not None and len(normals) == len(vertices)
-    return TriangleMesh(vertices_m=vertices, faces=faces,
-                        vertex_colors=np.asarray(colors, np.uint8) if ok_colors else None,
-                        vertex_normals=np.asarray(normals, np.float32) if ok_normals else None)
-
-
-def stage_stats(artifacts: Mapping[str, NDArray[Any]]) -> dict[str, Any]:
-    """The JSON figures every stage wrote, by stage."""
-    return {key.removeprefix("stats_"): json.loads(str(value))
-            for key, value in artifacts.items() if key.startswith("stats_")}
 
 
 def planned_stages(config: ReconstructConfig) -> tuple[str, ...]:
@@ -376,7 +304,7 @@ def reconstruct(capture: CaptureReader, config: ReconstructConfig,
             on_stage(name)
 
         def stage_progress(fraction: float, index: int = index) -> None:
-            _tick(progress, (index + fraction) / len(stages))
+            tick(progress, (index + fraction) / len(stages))
 
         started, cpu_started = time.perf_counter(), _cpu_seconds()
         artifacts.update(run_stage(name, capture, artifacts, config, stage_progress))

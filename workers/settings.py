@@ -1,7 +1,10 @@
-"""Service settings: one pydantic-settings object read from ``VOLUMESH_*`` environment variables.
+"""Service settings: one pydantic-settings object read from ``VOLUMESH_*`` environment variables,
+shared by the gateway and the workers (the gateway imports it from here, as layers point one
+way: app -> workers -> pipeline).
 
 The defaults give the embedded mode: everything lives under ``data_dir`` (SQLite job store,
-file-system broker, local storage) and no outside service is needed.
+file-system broker, local storage) and no outside service is needed. Each field's docstring is
+its description, which README's configuration table shows (`workers.settings_table`).
 """
 
 from __future__ import annotations
@@ -20,21 +23,28 @@ GiB = 1024 * MiB
 class Settings(BaseSettings):
     """Everything the gateway and the workers are configured with."""
 
-    model_config = SettingsConfigDict(env_prefix="VOLUMESH_", extra="ignore", frozen=True)
+    model_config = SettingsConfigDict(env_prefix="VOLUMESH_", extra="ignore", frozen=True,
+                                      use_attribute_docstrings=True)
 
     data_dir: Path = Path("volumesh-data")
     """Holds everything the embedded default keeps: job store, broker files, captures, assets."""
     broker_url: str | None = None
-    """Celery broker (``redis://host:6379/0``); None = embedded file-system broker in data_dir."""
+    """Celery broker (``redis://host:6379/0``); unset: the embedded file-system broker in
+    ``data_dir``."""
     database_url: str | None = None
-    """SQLAlchemy URL of the job store; None = SQLite file in data_dir."""
+    """SQLAlchemy URL of the job store; unset: a SQLite file in ``data_dir``."""
     storage_url: str | None = None
-    """``s3://bucket/prefix`` or a local directory; None = ``data_dir/storage``."""
+    """Where captures and assets are kept: ``s3://bucket/prefix`` or a local directory;
+    unset: ``storage`` in ``data_dir``."""
     s3_endpoint_url: str | None = None
-    """Endpoint of an S3-compatible store (MinIO, ...); None = AWS."""
+    """Endpoint of an S3-compatible store (MinIO, ...); unset: AWS."""
     s3_region: str = "us-east-1"
+    """Region of the S3 store."""
     s3_access_key_id: str | None = None
+    """Access key id for the S3 store; unset: boto3's own lookup (its environment variables,
+    config files, instance role)."""
     s3_secret_access_key: SecretStr | None = None
+    """Secret access key for the S3 store (kept out of logs and reprs)."""
 
     require_auth_for_reads: bool = False
     """When true, GET requests also need ``Authorization: Bearer <api key>``."""
@@ -68,7 +78,7 @@ class Settings(BaseSettings):
     worker_concurrency: int = Field(default=1, gt=0)
     """Processes per worker; stages are CPU-heavy, so one per worker process is the default."""
     embedded_worker: bool = True
-    """Embedded mode only: ``volumesh serve`` starts a worker beside the gateway."""
+    """Embedded mode only: ``volumesh serve`` starts its workers beside the gateway."""
     broker_polling_interval_s: float = Field(default=0.05, gt=0)
     """Embedded file-system broker: how often an idle worker looks for a task."""
     progress_interval_s: float = Field(default=0.25, ge=0)
@@ -88,16 +98,19 @@ class Settings(BaseSettings):
 
     @cached_property
     def resolved_database_url(self) -> str:
+        """The job store's URL: ``database_url``, else the SQLite file in ``data_dir``."""
         if self.database_url:
             return self.database_url
         return f"sqlite:///{(self.data_dir / 'volumesh.db').resolve()}"
 
     @cached_property
     def resolved_storage_url(self) -> str:
+        """The storage's URL: ``storage_url``, else the ``storage`` folder in ``data_dir``."""
         return self.storage_url or str((self.data_dir / "storage").resolve())
 
     @property
     def broker_dir(self) -> Path:
+        """The embedded file-system broker's folders."""
         return self.data_dir / "broker"
 
     @property

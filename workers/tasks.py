@@ -1,4 +1,5 @@
-"""Thin Celery tasks: ids in, work in :mod:`workers.runner`, state to the job store.
+"""Thin Celery tasks: ids in, work in :mod:`workers.runner` (a stage) and
+:mod:`workers.captures` (an upload's validation), state to the job store.
 
 The gateway sends these by name (``volumesh.stage``, ``volumesh.validate_capture``) and never
 imports this module.
@@ -13,14 +14,10 @@ from celery import Task, shared_task
 from celery.exceptions import SoftTimeLimitExceeded
 from celery.signals import worker_process_init
 
+from workers.captures import validate_capture
 from workers.celery_app import TASK_STAGE, TASK_VALIDATE
-from workers.runner import (
-    JobCancelledError,
-    WorkerContext,
-    run_step,
-    stage_name,
-    validate_capture,
-)
+from workers.context import WorkerContext
+from workers.runner import JobCancelledError, run_step, stage_name
 from workers.settings import Settings, get_settings
 
 log = logging.getLogger(__name__)

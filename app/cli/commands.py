@@ -7,5 +7,4 @@ import app.cli.reconstruct
 import app.cli.serve
 import app.cli.synth
 import app.cli.train
-import app.cli.weights
 import app.cli.worker  # noqa: F401

@@ -1,16 +1,49 @@
-"""`volumesh enhance-mesh`: LDM (or baseline) enhancement of one mesh file."""
+"""`volumesh enhance-mesh`: enhancement of one mesh file (ldm, regressor or classical)."""
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
 from app.cli import app
-from pipeline.enhance.presmooth.midrange import BoundedNoiseConfig
 from pipeline.enhance.self_check import SelfCheck
-from pipeline.enhance.update.normal_filter import NormalFilterConfig
+
+PRESMOOTHING = ("removed; the pre-smoothing is always the selector's blend of twicings (scale "
+                "selection) ended by the midrange estimator")
+REMOVED_OPTIONS = {
+    "--views": "removed; the networks read the six axis views they were trained on",
+    "--resolution": "removed; the networks read views of the side they were trained on",
+    "--strength": "removed; the LDM samples at the strength it was fine-tuned with",
+    "--iterations": "removed; --method classical replaces the smoothers it counted",
+    "--presmooth": PRESMOOTHING,
+    "--presmooth-passes": PRESMOOTHING,
+    "--adaptive-presmooth/--fixed-presmooth": PRESMOOTHING,
+    "--learned-presmooth/--no-learned-presmooth": PRESMOOTHING,
+    "--bounded-rings": "removed; the midrange estimator reads the rings it was tuned with",
+    "--gain": "removed; the per-vertex gain network sets each vertex's share",
+    "--min-noise-ratio": "removed; the noise gate is the enhancement's own (a mesh less noisy "
+                         "than 0.05 of its edge length is written unchanged)",
+    "--normal-filter": "removed; the bilateral normal filter ends every method as tuned",
+    "--remesh-ahead/--remesh-after": "removed; the speculative remesh runs where the device is "
+                                     "a GPU, the remesh after the update on the CPU",
+    "--ensemble": "removed; each view is enhanced once",
+}
+"""Options `enhance-mesh` refuses, each with what takes its place: given, they fail with that
+line rather than be silently accepted."""
+
+
+def _refused(declaration: str) -> Any:
+    """A hidden option that fails naming what replaced it (`REMOVED_OPTIONS`) when given."""
+    names = declaration.split("/")
+
+    def refuse(value: Any) -> None:
+        if value is not None:
+            raise ValueError(f"{declaration}: {REMOVED_OPTIONS[declaration]}")
+
+    return typer.Option(*names if len(names) == 1 else [declaration], hidden=True,
+                        callback=refuse)
 
 
 @app.command("enhance-mesh")
@@ -20,115 +53,39 @@ def enhance_mesh_command(
     ],
     out: Annotated[Path, typer.Option("--out", help="Output mesh: .glb (glTF binary, Draco) "
                                       "or .ply.")],
-    method: Annotated[
-        str,
-        typer.Option(
-            "--method",
-            help="ldm|regressor|views|taubin|laplacian|twicing|adaptive|selector|bilateral",
-        ),
-    ] = "ldm",
-    views: Annotated[int, typer.Option("--views", help="Depth views (six axis views first).")] = 6,
-    resolution: Annotated[
-        int, typer.Option("--resolution", help="Depth image side, pixels.")
-    ] = 256,
+    method: Annotated[str, typer.Option(
+        "--method", help="ldm | regressor (a network corrects the pre-smoothed mesh's depth "
+        "views) | classical (the same pre-smoothing and ending, no network).")] = "ldm",
     steps: Annotated[int, typer.Option("--steps", help="DDIM steps (1 = one-step mode).")] = 4,
-    strength: Annotated[
-        float, typer.Option("--strength", help="Start point in the noise schedule.")
-    ] = 0.5,
-    iterations: Annotated[
-        int, typer.Option("--iterations", help="Iterations of classical smoothers.")
-    ] = 8,
-    presmooth: Annotated[
-        int,
-        typer.Option(
-            "--presmooth",
-            help="Laplacian iterations before the networks (as the weights were trained).",
-        ),
-    ] = 30,
-    presmooth_passes: Annotated[
-        int,
-        typer.Option(
-            "--presmooth-passes",
-            help="Passes of that smoothing, 2 = twicing (as the weights were trained).",
-        ),
-    ] = 2,
-    adaptive: Annotated[
-        bool,
-        typer.Option(
-            "--adaptive-presmooth/--fixed-presmooth",
-            help="Choose the pre-smoothing's count per vertex (--presmooth is the pilot's).",
-        ),
-    ] = True,
-    learned: Annotated[
-        bool,
-        typer.Option(
-            "--learned-presmooth/--no-learned-presmooth",
-            help="The pre-smoothing is the trained selector's blend of twicings (then "
-            "--presmooth 0 still turns it off, and its passes and pilot are the weights').",
-        ),
-    ] = True,
-    bounded_rings: Annotated[
-        int,
-        typer.Option(
-            "--bounded-rings",
-            help="Rings of neighbours whose residual range ends the pre-smoothing where the "
-            "noise is bounded (light-tailed); 0: off.",
-        ),
-    ] = BoundedNoiseConfig.rings,
-    gain: Annotated[
-        float | None,
-        typer.Option("--gain", help="Follow this fixed share (0, 2] of the networks' depth "
-                     "correction everywhere, instead of the learned per-vertex gains."),
-    ] = None,
-    min_noise_ratio: Annotated[
-        float,
-        typer.Option(
-            "--min-noise-ratio",
-            help="The networks leave a mesh less noisy than this (noise over mean edge "
-            "length) unchanged; 0 always enhances.",
-        ),
-    ] = 0.05,
-    normal_filter: Annotated[
-        int,
-        typer.Option(
-            "--normal-filter",
-            help="Rounds of bilateral normal filtering that end the view-based update; 0: off.",
-        ),
-    ] = NormalFilterConfig.normal_iterations,
-    remesh_ahead: Annotated[
-        bool | None,
-        typer.Option(
-            "--remesh-ahead/--remesh-after",
-            help="Start the light remesh on the mesh the update moves, beside the networks, "
-            "and carry it onto the moved mesh (faster where a GPU runs the networks; up to "
-            "0.2 %% more C2M RMS on the benchmark's meshes), or remesh the moved mesh after "
-            "the update. Default: ahead on a GPU, after on the CPU.",
-        ),
-    ] = None,
-    self_check: Annotated[
-        bool,
-        typer.Option(
-            "--self-check/--no-self-check",
-            help="Before the networks' update, enhance a simulated copy of the mesh (the "
-            "classical result with the mesh's own noise shuffled back on) with and without "
-            "them, and keep the classical result where they lose there. About doubles the "
-            "time.",
-        ),
-    ] = False,
-    seed: Annotated[int, typer.Option("--seed")] = 0,
-    ensemble: Annotated[
-        int, typer.Option("--ensemble", help="Flipped copies of each view averaged: 1|2|4|8.")
-    ] = 1,
+    self_check: Annotated[bool, typer.Option(
+        "--self-check/--no-self-check",
+        help="Before the networks' update, enhance a simulated copy of the mesh (the "
+        "classical result with the mesh's own noise shuffled back on) with and without "
+        "them, and keep the classical result where they lose there. About doubles the "
+        "time.")] = False,
     device: Annotated[str, typer.Option("--device", help="auto | cpu | cuda")] = "auto",
-    weights: Annotated[
-        Path | None,
-        typer.Option(
-            "--weights", help="Folder of .safetensors (regressor, vae, ldm, selector, "
-            "ldm_gain, regressor_gain; those it lacks: the shipped)."
-        ),
-    ] = None,
+    weights: Annotated[Path | None, typer.Option(
+        "--weights", help="Folder of .safetensors (regressor, vae, ldm, selector, ldm_gain, "
+        "regressor_gain; those it lacks: the shipped).")] = None,
+    seed: Annotated[int, typer.Option("--seed", help="Seed of the LDM's start noise.")] = 0,
+    views: Annotated[str | None, _refused("--views")] = None,
+    resolution: Annotated[str | None, _refused("--resolution")] = None,
+    strength: Annotated[str | None, _refused("--strength")] = None,
+    iterations: Annotated[str | None, _refused("--iterations")] = None,
+    presmooth: Annotated[str | None, _refused("--presmooth")] = None,
+    presmooth_passes: Annotated[str | None, _refused("--presmooth-passes")] = None,
+    adaptive: Annotated[bool | None, _refused("--adaptive-presmooth/--fixed-presmooth")] = None,
+    learned: Annotated[bool | None,
+                       _refused("--learned-presmooth/--no-learned-presmooth")] = None,
+    bounded_rings: Annotated[str | None, _refused("--bounded-rings")] = None,
+    gain: Annotated[str | None, _refused("--gain")] = None,
+    min_noise_ratio: Annotated[str | None, _refused("--min-noise-ratio")] = None,
+    normal_filter: Annotated[str | None, _refused("--normal-filter")] = None,
+    remesh_ahead: Annotated[bool | None, _refused("--remesh-ahead/--remesh-after")] = None,
+    ensemble: Annotated[str | None, _refused("--ensemble")] = None,
 ) -> None:
-    """Enhance a mesh: render depth views, enhance them, move vertices to the enhanced depth."""
+    """Enhance a mesh: pre-smooth it, correct its depth views with a network, move the
+    vertices to the corrected depth and light-remesh it."""
     import time
 
     from tqdm import tqdm
@@ -136,55 +93,26 @@ def enhance_mesh_command(
     from app.cli.paths import output_file
     from pipeline.enhance import EnhanceConfig, enhance_mesh
     from pipeline.enhance.config import validate_config
-    from pipeline.enhance.enhancement import gated, past_the_gate, skipped_at
-    from pipeline.enhance.noise_level import noise_to_edge_ratio
-    from pipeline.enhance.weights import DEFAULT_FILES
+    from pipeline.enhance.noise_level import (
+        gated,
+        noise_to_edge_ratio,
+        past_the_gate,
+        skipped_at,
+    )
     from pipeline.io.gltf_io import write_mesh
     from pipeline.io.mesh_io import read_mesh
 
     output_file(out, suffixes=(".glb", ".ply"))
-    loaded = None
-    if weights is not None:
-        if not weights.is_dir():
-            raise ValueError(f"--weights: {weights} is not a directory")
-        loaded = {
-            p.stem: p.read_bytes()
-            for p in weights.glob("*.safetensors")
-            if p.stem in DEFAULT_FILES
-        }
-    config = EnhanceConfig(
-        method=method,
-        views=views,
-        resolution=resolution,
-        steps=steps,
-        strength=strength,
-        seed=seed,
-        ensemble=ensemble,
-        iterations=iterations,
-        presmooth_iterations=presmooth,
-        presmooth_passes=presmooth_passes,
-        presmooth_adaptive=adaptive,
-        presmooth_learned=learned,
-        bounded_noise=BoundedNoiseConfig(rings=bounded_rings),
-        correction_gain=EnhanceConfig.correction_gain if gain is None else gain,
-        learned_gain=gain is None,
-        min_noise_ratio=min_noise_ratio,
-        self_check=self_check,
-        normal_filter=NormalFilterConfig(normal_iterations=normal_filter),
-        remesh_ahead=remesh_ahead,
-        device=device,
-        weights=loaded,
-    )
+    config = EnhanceConfig(method=method, steps=steps, seed=seed, self_check=self_check,
+                           device=device, weights=_weights(weights))
     validate_config(config)
     mesh = read_mesh(mesh_in)
     noise_ratio = noise_to_edge_ratio(mesh) if gated(config) else None
     skipped = noise_ratio is not None and skipped_at(noise_ratio, config)
     if skipped:
-        typer.echo(
-            f"enhance-mesh: {mesh_in}'s estimated noise, {noise_ratio:.3f} of its "
-            f"edge length, is below --min-noise-ratio {min_noise_ratio}: written unchanged",
-            err=True,
-        )
+        typer.echo(f"enhance-mesh: {mesh_in}'s estimated noise, {noise_ratio:.3f} of its edge "
+                   f"length, is below the noise gate, {config.min_noise_ratio}: written "
+                   "unchanged", err=True)
     checks: list[SelfCheck] = []
     started = time.perf_counter()
     with tqdm(total=100, desc="enhance", unit="%") as bar:
@@ -202,6 +130,18 @@ def enhance_mesh_command(
     write_mesh(out, result)
     typer.echo(f"wrote {out} ({result.vertex_count} vertices, {result.face_count} triangles, "
                f"{out.stat().st_size} bytes; {method}, {time.perf_counter() - started:.1f} s)")
+
+
+def _weights(folder: Path | None) -> dict[str, bytes] | None:
+    """The model files of a --weights folder by name (None: the shipped)."""
+    from pipeline.enhance.weights import DEFAULT_FILES
+
+    if folder is None:
+        return None
+    if not folder.is_dir():
+        raise ValueError(f"--weights: {folder} is not a directory")
+    return {p.stem: p.read_bytes() for p in folder.glob("*.safetensors")
+            if p.stem in DEFAULT_FILES}
 
 
 def _told(check: SelfCheck) -> str:

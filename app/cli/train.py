@@ -1,23 +1,24 @@
 """`volumesh train`: trains the twicing selector (the pre-smoothing), the regressor, the VAE and
 the U-Net + ControlNet, fine-tunes the three end to end, then the vertex gains of the mesh
-update; writes weights, training.json and the model card. The data are `train_data`'s, the
-network stages `train_stages`'."""
+update (`pipeline.enhance.training.run`); or makes weights from trained ones (`--average`,
+`--selector-ensemble`). Writes weights and training.json into --out."""
 
 from __future__ import annotations
 
 import json
-import time
-from dataclasses import asdict, replace
+import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
 from app.cli import app
-from app.cli.model_card import model_card
 
 STAGES = "selector,regressor,vae,ldm,finetune,gain"
 MESHES = Path("../shared/data/meshes")
+MESH_SUFFIXES = (".obj", ".ply", ".off")
 
 
 @app.command()
@@ -36,167 +37,149 @@ def train(
     workers: Annotated[
         int, typer.Option("--workers", min=1, help="Processes making the training pairs.")
     ] = 1,
-    minutes: Annotated[
-        float | None,
-        typer.Option("--minutes", min=0.01,
-                     help="Wall-clock cap per network stage (default: the config's)."),
-    ] = None,
-    poses: Annotated[
-        int | None,
-        typer.Option("--poses", min=1, help="Poses per source mesh (default: the config's)."),
-    ] = None,
-    mix: Annotated[
-        str,
-        typer.Option("--mix", help="Degradation mix of the pairs: full (every degradation) or "
-                     "mesh (only what a mesh's renders carry, as the enhance stage meets)."),
-    ] = "full",
-    lr: Annotated[
-        float | None,
-        typer.Option("--lr", min=1e-7, max=1.0,
-                     help="Peak learning rate of every network stage (default: the config's; "
-                     "fine-tuning --init weights wants less, e.g. 2e-4)."),
-    ] = None,
-    loss_mask: Annotated[
-        float | None,
-        typer.Option("--loss-mask", min=0.001, max=1.0,
-                     help="Leave pixels where an input is further than this (normalised depth) "
-                     "from the clean render out of the losses (default: the config's, 0.05; "
-                     "0.02 leaves out all that sees another surface)."),
-    ] = None,
-    init: Annotated[
-        Path | None,
-        typer.Option(
-            "--init",
-            help="Fine-tune the weights in this folder (e.g. the shipped ones): the regressor "
-            "stage starts from its regressor.safetensors, the finetune stage from its "
-            "vae/ldm.safetensors (then leave out the vae and ldm stages).",
-        ),
-    ] = None,
+    minutes: Annotated[float | None, typer.Option(
+        "--minutes", min=0.01, help="Wall-clock cap per network stage (default: the config's).",
+    )] = None,
+    poses: Annotated[int | None, typer.Option(
+        "--poses", min=1, help="Poses per source mesh (default: the config's).")] = None,
+    mix: Annotated[str, typer.Option(
+        "--mix", help="Degradation mix of the pairs: full (every degradation) or mesh (only "
+        "what a mesh's renders carry, as the enhance stage meets).")] = "full",
+    lr: Annotated[float | None, typer.Option(
+        "--lr", min=1e-7, max=1.0, help="Peak learning rate of every network stage (default: "
+        "the config's; fine-tuning --init weights wants less, e.g. 2e-4).")] = None,
+    loss_mask: Annotated[float | None, typer.Option(
+        "--loss-mask", min=0.001, max=1.0, help="Leave pixels where an input is further than "
+        "this (normalised depth) from the clean render out of the losses (default: the "
+        "config's, 0.05; 0.02 leaves out all that sees another surface).")] = None,
+    init: Annotated[Path | None, typer.Option(
+        "--init", help="Fine-tune the weights in this folder (e.g. the shipped ones): the "
+        "regressor stage starts from its regressor.safetensors, the finetune stage from its "
+        "vae/ldm.safetensors (then leave out the vae and ldm stages).")] = None,
+    average: Annotated[tuple[Path, Path] | None, typer.Option(
+        "--average", metavar="START END", help="Train nothing: write into a new --out END's "
+        "weights with its regressor, VAE and LDM moved --share of the way from START's "
+        "(the folder a --init run started from) to END's (WiSE-FT).")] = None,
+    share: Annotated[float, typer.Option(
+        "--share", min=0.0, max=1.0, help="With --average: END's share.")] = 0.5,
+    selector_ensemble: Annotated[list[Path] | None, typer.Option(
+        "--selector-ensemble", help="Train nothing: write --out/selector.safetensors, the "
+        "ensemble (mean blend weights) of these selector files of runs with different seeds; "
+        "give it once per file.")] = None,
 ) -> None:
     """Train the enhancement models from meshes (never the bunny: it is the test model)."""
-    from tqdm import tqdm
-
+    if average is not None and selector_ensemble:
+        raise ValueError("--average and --selector-ensemble: give one of them")
+    if average is not None:
+        return _write_average(*average, share, out)
+    if selector_ensemble:
+        return _write_selector_ensemble(selector_ensemble, out)
     from app.cli.paths import output_folder
-    from app.cli.train_data import (
-        gain_stage,
-        network_weights,
-        selector_stage,
-        set_percent,
-        training_pairs,
-        training_sets,
-    )
-    from app.cli.train_stages import NETWORK_STAGES, StageRunner
     from pipeline.enhance.device import resolve_device
+    from pipeline.enhance.training.plan import run_config, wanted_stages
+    from pipeline.enhance.training.run import RunSettings, train_run
 
     cfg = run_config(config, budget_scale, poses, mix, minutes, lr, loss_mask)
-    wanted = wanted_stages(stages, init)
+    init_store = None if init is None else FolderStore(init)
+    wanted = wanted_stages(stages, init_store)
     if not meshes.is_dir():  # an empty folder is fine: procedural shapes alone
         raise ValueError(f"--meshes: {meshes} is not a folder")
-    dev = resolve_device(device)
-    (output_folder(out) / "checkpoints").mkdir(exist_ok=True)
-    report_path = out / "training.json"
-    report = json.loads(report_path.read_text()) if resume and report_path.exists() else {}
-    report.update({"config": asdict(cfg), "seed": seed, "device": dev.type})
-
-    train_set, val_set = training_sets(meshes, procedural, seed)
-    report["data"] = {"train": [n for n, _ in train_set], "validation": [n for n, _ in val_set]}
-    if "selector" in wanted and not (resume and (out / "selector.safetensors").exists()):
-        report["selector"] = selector_stage(out, train_set, val_set, cfg.selector, seed)
-        # A new selector replaces any ensemble the report described.
-        report.pop("selector_ensemble", None)
-        report_path.write_text(json.dumps(report, indent=1))
-    network_stages = [s for s in wanted if s in NETWORK_STAGES]
-    if network_stages:
-        t0 = time.monotonic()
-        with tqdm(total=100, desc="data", unit="%") as bar:
-            train_pairs = training_pairs(train_set, cfg.data, seed, workers,
-                                         lambda f: set_percent(bar, f))
-        val_pairs = training_pairs(val_set, cfg.data, seed + 1000, workers)
-        report["data"].update({"train_pairs": len(train_pairs.source),
-                               "validation_pairs": len(val_pairs.source),
-                               "seconds": time.monotonic() - t0})
-        runner = StageRunner(out, cfg, seed, dev, resume, train_pairs, val_pairs)
-        if init is not None:
-            report["init"] = str(init)
-        runner.start_from(init)
-        for stage in network_stages:
-            entry = runner.run(stage)
-            if entry is not None:
-                report[stage] = entry
-                report_path.write_text(json.dumps(report, indent=1))
-                typer.echo(f"{stage}: {json.dumps(entry['validation'])}")
-    gains_done = all((out / f"{m}_gain.safetensors").exists() for m in cfg.gain.methods)
-    if "gain" in wanted and not (resume and gains_done):
-        report["gain"] = gain_stage(out, train_set, val_set, cfg.gain, seed,
-                                    network_weights(out, init))
-    report_path.write_text(json.dumps(report, indent=1))
-    (out / "MODEL_CARD.md").write_text(model_card(report))
+    settings = RunSettings(cfg, wanted, seed, resolve_device(device), resume, workers,
+                           procedural)
+    train_run(settings, _source_meshes(meshes), FolderStore(output_folder(out)), init_store,
+              stage_bar, lambda stage, figures: typer.echo(f"{stage}: {json.dumps(figures)}"))
 
 
-def run_config(config: str, budget_scale: float, poses: int | None, mix: str,
-               minutes: float | None, lr: float | None, loss_mask: float | None):
-    """The named configuration with the command line's edits; ValueError names a bad option."""
-    from pipeline.enhance.training import config as tc
-    from pipeline.enhance.training.data import MIXES, with_mix
-
-    if config not in tc.CONFIGS:
-        raise ValueError(f"--config: {config!r} is not one of {', '.join(tc.CONFIGS)}")
-    if mix not in MIXES:
-        raise ValueError(f"--mix: {mix!r} is not one of {', '.join(MIXES)}")
-    cfg = tc.CONFIGS[config]
-    if budget_scale != 1.0:
-        cfg = tc.scaled(cfg, budget_scale)
-    if poses is not None:
-        cfg = replace(cfg, data=replace(cfg.data, poses_per_mesh=poses))
-    cfg = replace(cfg, data=with_mix(cfg.data, mix))
-    if minutes is not None:
-        cfg = tc.capped(cfg, minutes)
-    if lr is not None:
-        cfg = tc.with_lr(cfg, lr)
-    if loss_mask is not None:
-        cfg = replace(cfg, loss_mask_threshold_n=loss_mask)
-    return cfg
+@app.command("interpolate-weights", hidden=True, add_help_option=False,
+             context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
+def interpolate_weights() -> None:
+    """Removed: `volumesh train --average`."""
+    raise ValueError("interpolate-weights: removed; use `volumesh train --average START END "
+                     "--out NEW [--share S]`")
 
 
-def wanted_stages(stages: str, init: Path | None) -> list[str]:
-    """The --stages list, checked against each other and against --init's folder."""
-    wanted = [s.strip() for s in stages.split(",") if s.strip()]
-    for s in wanted:
-        if s not in STAGES.split(","):
-            raise ValueError(f"--stages: unknown stage {s!r}")
-    if init is not None:
-        missing = [n for n in ("regressor", "vae", "ldm")
-                   if not (init / f"{n}.safetensors").exists()]
-        if missing:
-            raise ValueError(f"--init: {init} has no {', '.join(missing)}.safetensors")
-        if {"vae", "ldm"} & set(wanted):
-            raise ValueError("--init: leave out the vae and ldm stages (finetune starts from "
-                             "the folder's)")
-    return wanted
+@app.command("selector-ensemble", hidden=True, add_help_option=False,
+             context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
+def removed_selector_ensemble() -> None:
+    """Removed: `volumesh train --selector-ensemble`."""
+    raise ValueError("selector-ensemble: removed; use `volumesh train --selector-ensemble A "
+                     "--selector-ensemble B [...] --out DIR`")
 
 
-@app.command("selector-ensemble")
-def selector_ensemble(
-    out: Annotated[Path, typer.Option("--out", help="The ensemble's .safetensors file.")],
-    members: Annotated[list[Path], typer.Argument(
-        help="selector.safetensors files of `volumesh train --stages selector` runs with "
-        "different seeds.")],
-) -> None:
-    """Write the ensemble of trained selectors: the mean of their blend weights."""
-    from pipeline.enhance.weights.loading import load_selector, selector_ensemble_to_bytes
+class FolderStore:
+    """A folder as a run's `WeightsStore`."""
 
-    if len(set(members)) < 2 or len(set(members)) < len(members):
-        raise ValueError("selector-ensemble: give two or more different selector files")
-    if not out.parent.is_dir():
-        raise ValueError(f"selector-ensemble: --out: {out.parent} is not a directory")
-    data = []
+    def __init__(self, folder: Path) -> None:
+        self.folder = folder
+        self.where = str(folder)
+
+    def names(self) -> list[str]:
+        return sorted(p.name for p in self.folder.iterdir() if p.is_file())
+
+    def has(self, name: str) -> bool:
+        return (self.folder / name).is_file()
+
+    def read(self, name: str) -> bytes:
+        return (self.folder / name).read_bytes()
+
+    def write(self, name: str, data: bytes) -> None:
+        path = self.folder / name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f"{path.name}.tmp")
+        tmp.write_bytes(data)
+        os.replace(tmp, path)  # atomic: an interrupted write never spoils the last one
+
+
+@contextmanager
+def stage_bar(stage: str) -> Iterator:
+    """A progress bar for a stage of the run, and the (fraction, text) callback that moves it."""
+    from tqdm import tqdm
+
+    bar = tqdm(total=1000, desc=stage)
+
+    def moved(fraction: float, text: str) -> None:
+        bar.n = int(fraction * 1000)
+        bar.set_postfix_str(text, refresh=False)
+        bar.refresh()
+
+    try:
+        yield moved
+    finally:
+        bar.close()
+
+
+def _source_meshes(folder: Path) -> list:
+    """(name, mesh) of the folder's mesh files, by name."""
+    from pipeline.io.mesh_io import read_mesh
+
+    paths = sorted(p for p in folder.glob("*") if p.suffix.lower() in MESH_SUFFIXES)
+    return [(p.stem, read_mesh(p)) for p in paths]
+
+
+def _write_average(start: Path, end: Path, share: float, out: Path) -> None:
+    """`--average`: the averaged weights into the new folder `out`."""
+    from app.cli.paths import output_folder
+    from pipeline.enhance.training.merge import averaged_weights
+
+    for folder in (start, end):
+        if not folder.is_dir():
+            raise ValueError(f"--average: {folder} is not a folder")
+    if out.exists():
+        raise ValueError(f"--out: {out} exists (give a new folder)")
+    output_folder(out.parent)
+    files = averaged_weights(FolderStore(start), FolderStore(end), share)
+    out.mkdir()
+    for name, data in files.items():
+        (out / name).write_bytes(data)
+
+
+def _write_selector_ensemble(members: list[Path], out: Path) -> None:
+    """`--selector-ensemble`: the ensemble of the member files into `out`/selector.safetensors."""
+    from app.cli.paths import output_folder
+    from pipeline.enhance.training.merge import selector_ensemble
+
     for path in members:
         if not path.is_file():
-            raise ValueError(f"selector-ensemble: {path} is not a file")
-        data.append(path.read_bytes())
-        try:
-            load_selector(data[-1])
-        except Exception as exc:  # whatever a foreign file makes safetensors or torch raise
-            raise ValueError(f"selector-ensemble: {path} is not a selector file ({exc})"
-                             ) from None
-    out.write_bytes(selector_ensemble_to_bytes(data))
+            raise ValueError(f"--selector-ensemble: {path} is not a file")
+    data = selector_ensemble([(str(p), p.read_bytes()) for p in members])
+    FolderStore(output_folder(out)).write("selector.safetensors", data)

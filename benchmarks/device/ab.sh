@@ -7,11 +7,10 @@
 # kept from before the warm-up (`--networks kept`, as a worker keeps them between jobs), after
 # either warm-up; a worker's steady state (both) with the kernel's pieces from 12.5 k faces
 # rather than 25 k (16 pieces on the bunny rather than 8, where the host has 16 cores);
-# a worker's steady state with the self-check (`--self-check`, twenty-eighth session);
+# a worker's steady state with the self-check (`--self-check`);
 # without the remesh, on beetle and profiled ($OUT/prof_bunny.txt); each variant's min /
 # median / max ($OUT/summary.json, `summary.py`); and the tests that need CUDA. About 6
-# minutes there (204 s on the twenty-fourth session's H100, with the unpacking, before the
-# five runs with the networks kept).
+# minutes on an H100 or H200, unpacking included.
 set -uo pipefail
 source "$(dirname "$0")/setup.sh"
 out=${OUT:-.}

@@ -4,9 +4,7 @@
 # the default there, and once after the update for comparison), profiles one bunny
 # ($OUT/prof_bunny.txt), times the light remesh's variants ($OUT/remesh_speed.json), then runs
 # the tests that need CUDA.
-# About 4 minutes there (224 s on the twenty-fourth session's H100, unpacking included), so
-# one session's device time holds it
-# with its machine's start.
+# About 4 minutes on an H100, unpacking included.
 set -uo pipefail
 source "$(dirname "$0")/setup.sh"
 out=${OUT:-.}

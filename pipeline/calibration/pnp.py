@@ -10,7 +10,7 @@ from pipeline.calibration.transforms import from_rotvec
 
 _PLANAR_TOLERANCE_M = 1e-6
 # OpenCV's default stops after 20 iterations or a step below FLT_EPSILON; near a 180-degree
-# turn with a slight tilt that left up to 1e-5 degrees and 3e-6 px on exact corners.
+# turn with a slight tilt that leaves up to 1e-5 degrees and 3e-6 px on exact corners.
 _LM_CRITERIA = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-15)
 
 

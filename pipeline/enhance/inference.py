@@ -1,5 +1,6 @@
 """Running loaded networks (`loading`): the per-vertex networks in row chunks, the selector's
-pre-smoothing, and the depth networks on a batch of renders."""
+pre-smoothing (scale selection, then the midrange estimator), and the depth networks on a
+batch of renders."""
 
 from __future__ import annotations
 
@@ -22,9 +23,8 @@ if TYPE_CHECKING:
 
 
 ROW_CHUNK = 4096
-"""Rows a per-vertex network takes at a time (`by_row_chunks`): its activations then stay in
-the cache. The selector ensemble on beetle's 258 k rows, 2 cores: 2.6 s in one batch, 2.0 s
-in chunks of 64 k rows, 1.1 s of 8 k, 1.0 s of 4 k."""
+"""Rows a per-vertex network takes at a time on the CPU (`by_row_chunks`): its activations
+then stay in the cache."""
 
 
 def by_row_chunks(model, rows: NDArray[np.float32], device: str = "cpu") -> NDArray[np.float32]:
@@ -57,34 +57,13 @@ def selector_blend(model, candidates: TwicingCandidates, device: str = "cpu"
     return blend(candidates.vertices_m, by_row_chunks(model, candidates.features, device))
 
 
-def presmoothed(
-    mesh: TriangleMesh, iterations: int, passes: int, adaptive: bool, selector=None,
-    device: str | None = None, bounded: BoundedNoiseConfig | None = None,
-) -> TriangleMesh:
-    """The networks' pre-smoothing, for inference and training pairs alike: the blend of a
-    loaded `selector` (`load_selector`) where one is given (its smoothing on `device`), else
-    `baselines.presmooth`, then `bounded`'s refinement where given
-    (`bounded_noise_refine`); 0 iterations: the mesh."""
-    from pipeline.enhance.device import accelerator
-    from pipeline.enhance.presmooth.midrange import bounded_noise_refine
-    from pipeline.geometry.smoothing import presmooth
-
-    if iterations == 0:
-        return mesh
-    if selector is not None:
-        return selector_presmoothed(mesh, selector, bounded, device)
-    smooth = presmooth(mesh, iterations, passes, adaptive)
-    if bounded is None:
-        return smooth
-    return bounded_noise_refine(mesh, smooth, bounded, accelerator(device))
-
-
 def selector_presmoothed(mesh: TriangleMesh, selector, bounded: BoundedNoiseConfig | None,
                          device: str | None = None) -> TriangleMesh:
-    """A loaded selector's (`load_selector`) blend of the mesh's twicings, then `bounded`'s
-    refinement where given and where it runs (`refined_where_bounded`): from the blend of
-    the weights averaged over the neighbours (`BoundedNoiseConfig.weight_passes`); where it
-    does not run, the blend as it is. The smoothing steps run on `device` (None: scipy)."""
+    """The pre-smoothing of every method: a loaded selector's (`load_selector`) blend of the
+    mesh's twicings (scale selection), then the midrange estimator of `bounded` where given
+    and where it runs (`refined_where_bounded`), from the blend of the weights averaged over
+    the neighbours (`BoundedNoiseConfig.weight_passes`); where it does not run, the blend as
+    it is. The smoothing steps run on `device` (None: scipy)."""
     from pipeline.enhance.device import accelerator
     from pipeline.enhance.presmooth.midrange import refined_where_bounded
     from pipeline.enhance.presmooth.scale_selection import (
@@ -104,25 +83,6 @@ def selector_presmoothed(mesh: TriangleMesh, selector, bounded: BoundedNoiseConf
     base = blended(weights_averaged(candidates, weights, bounded.weight_passes))
     refined = refined_where_bounded(mesh, base, bounded, accelerator(device))
     return blended(weights) if refined is None else refined
-
-
-def dihedral(x, k: int, inverse: bool = False):
-    """The k-th of the 8 flips/transposes of (..., H, W) square images (k = 0: identity)."""
-    if inverse:
-        if k & 4:
-            x = x.transpose(-1, -2)
-        if k & 2:
-            x = x.flip(-2)
-        if k & 1:
-            x = x.flip(-1)
-        return x
-    if k & 1:
-        x = x.flip(-1)
-    if k & 2:
-        x = x.flip(-2)
-    if k & 4:
-        x = x.transpose(-1, -2)
-    return x
 
 
 Network = Callable[["torch.Tensor", "torch.Tensor", "torch.Tensor"], "torch.Tensor"]
@@ -150,12 +110,7 @@ def run_network(
     beforehand for `config` (`load_enhancer`), else loaded here; invalid pixels unchanged.
 
     `base` are the renders the network corrects (of the pre-smoothed mesh), `noisy` those of
-    the mesh as it came, from the same views (their colour gives the edge input).
-
-    With `config.ensemble` > 1 the views are also enhanced flipped and transposed, and the
-    results averaged: the networks' errors differ between those copies while the surface
-    does not (the geometric self-ensemble of super-resolution work).
-    """
+    the mesh as it came, from the same views (their colour gives the edge input)."""
     import torch
 
     from pipeline.enhance.device import resolve_device
@@ -168,10 +123,6 @@ def run_network(
     edges_np = canny_edges(noisy.color_rgb, noisy.valid)
     e = None if edges_np is None else torch.from_numpy(edges_np[:, None]).to(device)
     side = side_inputs(e, torch.from_numpy(noisy.depth_n[:, None]).to(device), d, v)
-    total = torch.zeros_like(d)
     with torch.no_grad():
-        for k in range(config.ensemble):
-            t = [dihedral(x, k) for x in (d, v, side)]
-            total += dihedral(net(*t), k, inverse=True)
-    enhanced = (total / config.ensemble)[:, 0].cpu().numpy().astype(np.float32)
+        enhanced = net(d, v, side)[:, 0].cpu().numpy().astype(np.float32)
     return np.where(base.valid, enhanced, base.depth_n)

@@ -1,6 +1,7 @@
-"""Mesh quantities in torch, on the enhancement's device: what `pipeline.geometry.mesh` and
-`baselines.mean_operator` give in numpy and scipy, for the stages that run on a GPU, where
-the host's share of a mesh's enhancement is what keeps it above a second."""
+"""Mesh quantities in torch, on the enhancement's device: what `pipeline.geometry.mesh`,
+`pipeline.geometry.repair`, `pipeline.geometry.boundary` and
+`pipeline.geometry.smoothing.mean_operator` give in numpy and scipy, for the torch
+implementations of the stages, so that on a GPU the mesh need not go back to the host."""
 
 from __future__ import annotations
 
@@ -13,8 +14,8 @@ from pipeline.enhance.device import csr_tensor
 
 def vertex_normals(vertices_m: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
     """(V, 3) float32 area-weighted unit vertex normals of (V, 3) vertices and (F, 3) int64
-    faces (zero where the faces about a vertex cancel): float32, as `pipeline.geometry.mesh`'s, so
-    both paths agree to its rounding."""
+    faces (zero where the faces about a vertex cancel): float32, as
+    `pipeline.geometry.mesh`'s, so both implementations agree to its rounding."""
     tri = vertices_m[faces]
     weighted = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     normals = torch.zeros_like(vertices_m)
@@ -34,8 +35,8 @@ def face_normals(vertices_m: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
 
 def triangle_angles_deg(vertices_m: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
     """(F, 3) interior angle at each corner of (F, 3) int64 `faces`, degrees (0 for
-    degenerate), in `vertices_m`'s dtype: `mesh_repair.triangle_angles_deg`'s steps in its
-    order, so both agree to the rounding of their arccos."""
+    degenerate), in `vertices_m`'s dtype: `pipeline.geometry.repair.triangle_angles_deg`'s
+    steps in its order, so both agree to the rounding of their arccos."""
     corner = vertices_m[faces]
     side = corner.roll(-1, dims=1) - corner  # side c runs from corner c to corner c + 1
     x, y, z = side.unbind(dim=2)
@@ -88,8 +89,9 @@ def mean_operator(pattern: NeighbourPattern, self_weight: float = 0.0,
                   dtype: torch.dtype = torch.float64) -> torch.Tensor:
     """(V, V) sparse CSR (1 - w) M + w I, M the row-normalised adjacency (row i averages i's
     neighbours; an isolated vertex: itself), w `self_weight`; columns sorted; values computed
-    in float64, then `dtype`. w = 0 is `baselines.mean_operator` (no entry on the diagonal
-    but an isolated vertex's), w = 0.5 one Laplacian step (`baselines.twice_field`)."""
+    in float64, then `dtype`. w = 0 is `pipeline.geometry.smoothing.mean_operator` (no entry
+    on the diagonal but an isolated vertex's), w = 0.5 one Laplacian step
+    (`pipeline.geometry.smoothing.twice_field`)."""
     rows, columns, count = pattern.rows, pattern.columns, pattern.neighbour_count
     lonely = (count == 0).to(torch.float64)
     on_diagonal = rows == columns
@@ -107,7 +109,7 @@ def faces_sharing_vertices(faces: torch.Tensor, vertex_count: int
                            ) -> tuple[torch.Tensor, torch.Tensor]:
     """The faces that share a vertex with each of (F, 3) int64 faces, itself included, as
     CSR rows on their device: (F + 1,) row starts and the (P,) columns, ascending in a row
-    (`mesh_repair.faces_sharing_vertices`' pattern)."""
+    (`pipeline.geometry.repair.faces_sharing_vertices`' pattern)."""
     face_count = len(faces)
     corner_vertex = faces.reshape(-1)
     by_vertex = torch.argsort(corner_vertex, stable=True)
@@ -126,12 +128,13 @@ def faces_sharing_vertices(faces: torch.Tensor, vertex_count: int
 
 def boundary_half_edges(faces: torch.Tensor, vertex_count: int) -> torch.Tensor:
     """(B, 2) int64 the directed edges of (F, 3) int64 faces, in their face's winding, that only
-    one face uses, in face then corner order (`boundary.boundary_half_edges`' order)."""
+    one face uses, in face then corner order
+    (`pipeline.geometry.boundary.boundary_half_edges`' order)."""
     # Corner c's opposite edge runs from corner c + 1 to corner c + 2.
     half = torch.stack([faces.roll(-1, dims=1), faces.roll(-2, dims=1)], dim=2).reshape(-1, 2)
     low, high = torch.minimum(half[:, 0], half[:, 1]), torch.maximum(half[:, 0], half[:, 1])
-    # A key unlike both its sorted neighbours is an edge one face uses: on the CPU 0.27 ->
-    # 0.16 s for beetle's 1.5 M half-edges, against torch.unique's inverse and counts.
+    # A key unlike both its sorted neighbours is an edge one face uses: cheaper than
+    # torch.unique's inverse and counts.
     keys, order = torch.sort(low * vertex_count + high)
     alone = torch.ones(len(keys), dtype=torch.bool, device=keys.device)
     alone[1:] &= keys[1:] != keys[:-1]
@@ -142,7 +145,7 @@ def boundary_half_edges(faces: torch.Tensor, vertex_count: int) -> torch.Tensor:
 def csr_rows(rows: torch.Tensor, columns: torch.Tensor, row_count: int
              ) -> tuple[torch.Tensor, torch.Tensor]:
     """CSR row starts (row_count + 1,) and columns of entries given by (E,) ascending `rows`
-    and their `columns`, int32 where they fit: torch's CPU kernel for int64 ones ran 20 times
+    and their `columns`, int32 where they fit: torch's CPU kernel for int64 ones is much
     slower, and on any device sparse products read half the index bytes."""
     row_starts = torch.zeros(row_count + 1, dtype=torch.int64, device=rows.device)
     row_starts[1:] = torch.cumsum(torch.bincount(rows, minlength=row_count), 0)

@@ -1,10 +1,9 @@
 """The networks one enhancement runs, loaded once and kept for many meshes.
 
-`enhance_mesh` loads what its method needs (the LDM or the regressor, the selector of the
-pre-smoothing, the vertex gain network) on every call when it is given none. Loading the LDM
-builds its modules and places their weights: 0.10-0.15 s on 2 CPU cores, of a mesh's 4 s, and
-most of it is the interpreter's, so a GPU's host pays it too. A worker keeps one
-`EnhanceNetworks` between the meshes it enhances (`workers.runner.WorkerContext`).
+`enhance_mesh` loads what its method needs (the selector of the pre-smoothing; for ldm and
+regressor also the depth network and its vertex gain network) on every call when it is given
+none. Loading builds modules and places their weights, mostly in the interpreter, so a worker
+keeps one `EnhanceNetworks` between the meshes it enhances.
 """
 
 from __future__ import annotations
@@ -12,11 +11,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+from pipeline.enhance.config import NETWORK_METHODS
+
 if TYPE_CHECKING:
     from pipeline.enhance.config import EnhanceConfig
 
-NETWORK_METHODS = ("ldm", "regressor")
-"""The methods whose depth enhancement is a network."""
+__all__ = ["NETWORK_METHODS", "EnhanceNetworks", "load_networks", "networks_key",
+           "selector_for", "uses_gain", "uses_networks"]
 
 
 @dataclass(frozen=True)
@@ -27,43 +28,35 @@ class EnhanceNetworks:
     """What they were loaded for (`networks_key`)."""
     enhancer: Any | None
     """The depth network on its device (`loading.load_enhancer`): `LDMModels` or a
-    regressor; None for the methods without one."""
-    selector: Any | None
-    """The pre-smoothing's selector (`loading.load_selector`), where the method uses one."""
+    regressor; None for the classical method."""
+    selector: Any
+    """The pre-smoothing's selector (`loading.load_selector`)."""
     gain: Any | None
-    """The vertex gain network (`loading.load_vertex_gain`), where the method uses one."""
+    """The vertex gain network (`loading.load_vertex_gain`); None for the classical method."""
 
     def fits(self, config: EnhanceConfig) -> bool:
         """Whether these are the networks `config` would load."""
         return self.key == networks_key(config)
 
 
-def uses_selector(config: EnhanceConfig) -> bool:
-    """Whether `config`'s enhancement runs the selector: as its method, or as the networks'
-    pre-smoothing."""
-    return config.method == "selector" or (
-        config.method in NETWORK_METHODS and config.presmooth_iterations > 0
-        and config.presmooth_learned)
-
-
 def uses_networks(config: EnhanceConfig) -> bool:
-    """Whether `config`'s enhancement runs any network (the smoothers run none)."""
-    return config.method in NETWORK_METHODS or uses_selector(config)
+    """Whether `config`'s enhancement runs a network: every method does, the classical one
+    its pre-smoothing's selector."""
+    return True
 
 
 def uses_gain(config: EnhanceConfig) -> bool:
-    """Whether `config`'s enhancement runs a vertex gain network."""
-    return config.method in NETWORK_METHODS and config.learned_gain
+    """Whether `config`'s enhancement runs a vertex gain network (the depth networks' update)."""
+    return config.method in NETWORK_METHODS
 
 
 def networks_key(config: EnhanceConfig) -> tuple[Any, ...]:
-    """What decides which networks `config` loads, and where: its method, its device, the
-    weights it names and which of the selector and the gain network it uses."""
+    """What decides which networks `config` loads, and where: its method, its device and the
+    weights it names."""
     from pipeline.enhance.device import resolve_device
 
     weights = tuple(sorted((config.weights or {}).items()))
-    return (config.method, resolve_device(config.device).type, weights,
-            uses_selector(config), uses_gain(config))
+    return (config.method, resolve_device(config.device).type, weights)
 
 
 def selector_for(config: EnhanceConfig, networks: EnhanceNetworks | None):
@@ -85,7 +78,7 @@ def load_networks(config: EnhanceConfig) -> EnhanceNetworks:
     )
 
     enhancer = load_enhancer(config) if config.method in NETWORK_METHODS else None
-    selector = load_selector(model_bytes(config, "selector")) if uses_selector(config) else None
+    selector = load_selector(model_bytes(config, "selector"))
     gain = (load_vertex_gain(model_bytes(config, f"{config.method}_gain"))
             if uses_gain(config) else None)
     return EnhanceNetworks(networks_key(config), enhancer, selector, gain)

@@ -1,14 +1,18 @@
-"""How noisy a mesh is, relative to its own edge length, from the mesh alone.
+"""How noisy a mesh is, relative to its own edge length, from the mesh alone, and the noise
+gate that reads it.
 
-The networks correct the render of a mesh after Laplacian pre-smoothing; on a mesh that is
-already clean (a good reconstruction, an enhanced mesh) that smoothing removes detail the
-networks cannot restore, so the enhancement gates on this estimate.
+Every method pre-smooths the mesh; on a mesh that is already clean (a good reconstruction,
+an enhanced mesh) that smoothing removes detail nothing restores, so the enhancement returns
+a mesh whose estimated noise is below `EnhanceConfig.min_noise_ratio` as it came.
 """
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
+from pipeline.enhance.config import EnhanceConfig
 from pipeline.geometry.mesh import TriangleMesh, mean_edge_length_m, vertex_normals
 from pipeline.geometry.smoothing import mean_operator
 
@@ -54,3 +58,31 @@ def _median(values):
     ordered = values.sort().values
     middle = (len(ordered) - 1) // 2
     return 0.5 * (ordered[middle] + ordered[len(ordered) // 2])
+
+
+def skips_enhancement(mesh: TriangleMesh, config: EnhanceConfig, device: str | None = None
+                      ) -> bool:
+    """Whether `enhance_mesh` returns `mesh` as it came: its estimated noise is below
+    `config.min_noise_ratio` (estimated on `device` where it is an accelerator)."""
+    if not gated(config):
+        return False
+    from pipeline.enhance.device import accelerator
+
+    return skipped_at(noise_to_edge_ratio(mesh, accelerator(device)), config)
+
+
+def gated(config: EnhanceConfig) -> bool:
+    """Whether `config` returns a mesh less noisy than `min_noise_ratio` as it came."""
+    return config.min_noise_ratio > 0
+
+
+def skipped_at(noise_ratio: float, config: EnhanceConfig) -> bool:
+    """Whether `enhance_mesh` returns a mesh of this `noise_to_edge_ratio` as it came."""
+    return gated(config) and noise_ratio < config.min_noise_ratio
+
+
+def past_the_gate(config: EnhanceConfig) -> EnhanceConfig:
+    """`config` for a mesh its caller has already measured past the noise gate
+    (`skipped_at`): `enhance_mesh` then neither measures the noise again nor decides
+    otherwise, on a GPU in torch, near the line."""
+    return replace(config, min_noise_ratio=0.0)

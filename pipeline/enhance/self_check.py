@@ -1,14 +1,11 @@
 """Whether the networks help on this mesh, checked on a simulated copy whose truth is known.
 
-The networks' correction of the pre-smoothed base helps on some meshes and harms on others
-(under the benchmark's protocol it gained on the bunny, spot and fandisk and lost on beetle,
-teapot, cow and rocker-arm), and no per-vertex signal told which. A residual bootstrap does:
-the classical result (the base, then the normal filter) stands in for the truth, the input's
-own residuals from the base, shuffled among the vertices, make a copy of it as noisy as the
-input, and that copy is enhanced with the networks and without them. Which lands nearer the
-stand-in told right on every protocol mesh tried: the ten in shared/ at two noise seeds, three
-shapes from outside it, and four meshes under Gaussian noise (README, "Self-check";
-`benchmarks/enhance_self_check.py`).
+The networks' correction of the pre-smoothed base helps on some meshes and harms on others,
+and no per-vertex signal tells which. A residual bootstrap does: the classical result (the
+base, then the normal filter) stands in for the truth, the input's own residuals from the
+base, shuffled among the vertices, make a copy of it as noisy as the input, and that copy is
+enhanced with the networks and without them. Whichever lands nearer the stand-in is the one
+kept (`benchmarks/enhance_self_check.py` scores the choice).
 """
 
 from __future__ import annotations
@@ -61,7 +58,7 @@ def simulated_copy(mesh: TriangleMesh, base: TriangleMesh, truth: TriangleMesh, 
 def scored(without_networks: TriangleMesh, with_networks: TriangleMesh, truth: TriangleMesh
            ) -> SelfCheck:
     """The copy's two results scored against its truth, both in one query of its surface
-    (building that twice took 0.1 s of the bunny's check on 2 cores)."""
+    (built once: building it is most of a query's time)."""
     points_m = np.concatenate([without_networks.vertices_m, with_networks.vertices_m])
     squared = signed_distances_m(points_m, truth) ** 2
     split = without_networks.vertex_count

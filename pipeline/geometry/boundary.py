@@ -2,19 +2,14 @@
 
 A boundary vertex's neighbours all lie on one side of it, so each smoothing step pulls it
 inwards along the surface by a fraction of an edge, and long smoothing lets an open boundary
-retract: under issue 4's protocol the selector's twicings (up to 240 steps) left beetle's truth
-boundary 7 mm from the selector's result (its reverse RMS 1.554 mm, 55 % of its square from
-the truth's boundary vertices, which are 2.7 % of them). That
-one-sided offset is the shape of the mesh there, not noise, so it is measured once, on a pilot,
-and left out of every step (`twicing_blend.field_ops`); the vertex still follows its noise
-along the surface, along the boundary and along the normal.
+retract by several millimetres. That one-sided offset is the shape of the mesh there, not
+noise, so it is measured once, on a pilot, and left out of every step
+(`scale_selection_numpy.field_ops`); the vertex still follows its noise along the surface,
+along the boundary and along the normal.
 
 The pilot has itself retracted a little, so the offset comes out short and about a quarter of
-the retraction is held back on a regular grid (tests); beetle's reverse RMS under the protocol
-(the LDM's result, the selector shipped before the ensemble) went from 1.593 to 1.258 mm, its
-C2M RMS from 0.8766 to 0.8808. A pilot held against
-retraction holds all of it (reverse 0.963) but keeps the boundary's noise in the surface
-(C2M 0.9365; the teapot 0.6297 -> 0.6476), so it is not used.
+the retraction is held back on a regular grid (tests). A pilot held against retraction would
+hold all of it but keep the boundary's noise in the surface, so it is not used.
 """
 
 from __future__ import annotations
@@ -57,7 +52,7 @@ def boundary_offset(mesh: TriangleMesh, mean_op: sp.csr_matrix, pilot_iterations
     measured on the mesh after `pilot_iterations` Laplacian steps (the noise would swamp it
     on the mesh itself), zero away from the boundary; None for a closed mesh, or where
     `pilot_iterations` is 0 (the boundary is smoothed like the rest). `mean_op` is the mesh's
-    `baselines.mean_operator`."""
+    `smoothing.mean_operator`."""
     if pilot_iterations == 0:
         return None
     half = boundary_half_edges(mesh.faces)

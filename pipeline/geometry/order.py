@@ -11,7 +11,8 @@ that share a Morton cell are ordered by finer cells, then by their coordinates; 
 starts at its least vertex, and faces are sorted by all three. So a mesh whose vertices or
 faces are listed in another order, or whose faces start at another corner, comes out as
 the same arrays, and everything computed on them (sums, normals, the remesh's decisions)
-is the same bit for bit. Only vertices at exactly the same point keep their input order.
+is the same bit for bit. Only vertices at exactly the same point keep their input order
+(docs/decisions/canonical-mesh-order.md).
 """
 
 from __future__ import annotations
@@ -29,8 +30,8 @@ an edge on the meshes enhanced here (a 1 m bunny's 5 mm edges span five)."""
 ORDER_BITS = 21
 """Bits per axis of the codes vertices are sorted by: the most that fit in 63 bits. The cells
 nest, so a code's top 3 × `MORTON_BITS` bits are its coarse code: the order along the coarse
-curve is kept, and vertices sharing a coarse cell (two pairs on the protocol's bunny, 282 on
-beetle), which it left in the input's order, are put in order by finer cells."""
+curve is kept, and vertices sharing a coarse cell, which it leaves in the input's order, are
+put in order by finer cells."""
 
 
 @dataclass(frozen=True)
@@ -62,8 +63,8 @@ def morton_codes(points_m: NDArray[np.float64], bits: int = MORTON_BITS) -> NDAr
 
 _SPREAD_STEPS = ((32, 0x1F00000000FFFF), (16, 0x1F0000FF0000FF), (8, 0x100F00F00F00F00F),
                  (4, 0x10C30C30C30C30C3), (2, 0x1249249249249249))
-"""Shifts and masks that move bit b of a 21-bit number to bit 3 b in five steps, where a
-loop over the bits took 30."""
+"""Shifts and masks that move bit b of a 21-bit number to bit 3 b in five steps rather than a
+loop over the bits."""
 
 
 def _spread(cells: NDArray[np.uint64]) -> NDArray[np.uint64]:
@@ -88,8 +89,7 @@ def _vertex_order(vertices_m: NDArray[np.float64]) -> NDArray[np.int64]:
     """(V,) vertices by their `ORDER_BITS` Morton codes, ties by x, y and z."""
     codes = morton_codes(vertices_m, ORDER_BITS)
     # Stable: timsort runs on vertices already near their order (a remeshed or split mesh
-    # from one in this order) at a thirtieth of a quicksort's time (the bunny's split
-    # update, 0.13 against 4.8 ms), and no slower on others.
+    # from one in this order) far quicker than a quicksort, and no slower on others.
     order = np.argsort(codes, kind="stable")
     if np.any(codes[order[1:]] == codes[order[:-1]]):
         order = np.lexsort((vertices_m[:, 2], vertices_m[:, 1], vertices_m[:, 0], codes))
@@ -120,8 +120,7 @@ def _face_order(corners: NDArray[np.int64], vertex_count: int
 
 def _rotated(faces: NDArray, start: NDArray[np.int64]) -> NDArray:
     """(F, 3) each row of `faces` rotated to begin at its corner `start`: the same triangle,
-    the same winding. Column by column: a gather of the rows' corners took half as long again
-    (the bunny's faces, 6.3 against 4.1 ms)."""
+    the same winding. Column by column: quicker than a gather of the rows' corners."""
     a, b, c = faces[:, 0], faces[:, 1], faces[:, 2]
     one, two = start == 1, start == 2
     out = np.empty_like(faces)
@@ -170,9 +169,8 @@ def _permuted(per_vertex: NDArray | None, permutation: NDArray[np.int64]) -> NDA
 def in_spatial_order(vertices_m: NDArray[np.float64], faces: NDArray[np.int32]
                      ) -> tuple[NDArray[np.float64], NDArray[np.int32], MeshOrder]:
     """A mesh's vertices and faces in `spatial_order`, and the order (for per-face values:
-    `corners_reordered`). The remesh kernel runs faster on it too (the bunny's enhanced mesh
-    0.9 -> 0.6 s), and the angle clean-up's edge tables and neighbour gathers about twice as
-    fast."""
+    `corners_reordered`). The remesh kernel runs faster on it too, and the angle clean-up's
+    edge tables and neighbour gathers about twice as fast."""
     mesh = TriangleMesh(vertices_m=vertices_m, faces=faces)
     order = spatial_order(mesh)
     ordered = reordered(mesh, order)

@@ -63,7 +63,7 @@ class AlignConfig:
     """Standard deviation of the zero-mean prior on each pose translation, metres."""
     rounds: int = 1
     """Match-and-solve rounds (matches are redrawn with the corrected cameras); one is as
-    good as more for errors within the gate (measured up to 0.3 degrees and 3 mm)."""
+    good as more for errors well within the gate (a few tenths of a degree, a few mm)."""
     iterations: int = 6
     """Reweighted least-squares iterations per round."""
     min_matches: int = 50
@@ -263,8 +263,7 @@ def apply_offsets(depth_m: NDArray[np.float32], rays: NDArray[np.float32],
     """Depth with the camera's range offset removed (invalid pixels stay 0).
 
     rays: (H, W, 3) from :func:`pipeline.reconstruct.registration.ray_image`; the offset is
-    along each
-    ray, so z changes by offset / |ray|.
+    along each ray, so z changes by offset / |ray|.
     """
     corrected = depth_m - np.float32(offset_m) / np.linalg.norm(rays, axis=2)
     return np.where(depth_m > 0, np.maximum(corrected, np.float32(1e-6)),

@@ -3,8 +3,9 @@ stray points.
 
 Real captures see the studio too: walls and far objects beyond the ring of cameras, and the
 floor under the subject. Both would be meshed along with the subject (a floor plane of a
-few square metres costs more than the subject). The world is +Y up (DESIGN), so the floor
-is found as the lowest dense layer of up-facing points with (almost) nothing below it.
+few square metres costs more than the subject). The world is +Y up (docs/architecture.md), so
+the floor is found as the lowest dense layer of up-facing points with (almost) nothing below
+it.
 """
 
 from __future__ import annotations

@@ -1,11 +1,11 @@
 """Meshing: Poisson-disk samples of the refined cloud, then a surface.
 
 The surface is open3d's screened Poisson reconstruction of the oriented samples, trimmed
-where it strays from them. A Delaunay-based surface (restricted Delaunay / cocone) was the
-first choice of the design, but it leaves holes wherever the samples are sparse (grazing
-views, seams between cameras) and needs a manifold repair before remeshing; screened
-Poisson fills those holes with a smooth, watertight, manifold surface, and trimming what
-lies far from every sample keeps it honest where no camera saw anything.
+where it strays from them. A Delaunay-based surface (restricted Delaunay / cocone) would leave
+holes wherever the samples are sparse (grazing views, seams between cameras) and need a
+manifold repair before remeshing; screened Poisson fills those holes with a smooth,
+watertight, manifold surface, and trimming what lies far from every sample keeps it honest
+where no camera saw anything.
 """
 
 from __future__ import annotations
@@ -61,11 +61,9 @@ class MeshingConfig:
     """Threads of the neighbour queries (their results do not depend on it; -1: every
     core)."""
     poisson_threads: int = 1
-    """Threads of the Poisson solve. More than one is quicker but gives another surface
-    from run to run, and not only in the last bits: with 2, two reconstructions of the sample
-    capture had 49 447 and 49 446 Poisson triangles (60 427 and 60 485 after the remesh),
-    where 1 gave the same mesh each time, its mesh stage 1.43-2.18 s against 1.20-1.55 s
-    (twenty-eighth session)."""
+    """Threads of the Poisson solve. More than one gives another surface from run to run,
+    and not only in the last bits (even the triangle count changes); one gives the same mesh
+    every time (docs/decisions/poisson-one-thread.md)."""
     seed: int = 0
     """Seed of the sampling order (results are deterministic for a seed)."""
 

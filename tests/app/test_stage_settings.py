@@ -14,8 +14,7 @@ def test_the_gateways_copy_is_the_pipelines() -> None:
 
 
 @pytest.mark.parametrize("section, values", [
-    ("enhancement", {"method": "regressor", "views": 14, "strength": 1,
-                     "presmooth_learned": False}),
+    ("enhancement", {"method": "regressor", "views": 14, "strength": 1}),
     ("enhancement", {"self_check": True}),
     ("meshing", {"poisson_depth": 7}),
     ("colorize", {"fallback_rgb": [1, 2, 3]}),

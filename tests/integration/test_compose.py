@@ -1,5 +1,5 @@
 """docker-compose.yml: passes `docker compose config` (or docker-compose v1's) and wires the
-services the design names."""
+services docs/architecture.md names."""
 
 from __future__ import annotations
 

@@ -117,7 +117,7 @@ def test_unknown_stages_and_missing_inputs_are_value_errors(sphere_capture: Path
 def test_the_enhance_stage_asks_for_its_networks_only_where_it_enhances(
         sphere_capture: Path, whole_run: tuple[TriangleMesh, dict, list[str], list[float]],
         monkeypatch: pytest.MonkeyPatch) -> None:
-    """A worker's kept networks (loading them took a fresh worker 2.2 s) are asked for only
+    """A worker's kept networks (loading them costs a fresh worker seconds) are asked for only
     where the mesh is noisy enough to enhance; a clean mesh comes back as it was. The noise
     is measured once a mesh, by the stage, not again by `enhance_mesh`'s gate."""
     import pipeline.enhance.enhancement as enhancement_module

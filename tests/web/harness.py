@@ -147,8 +147,8 @@ class LiveGateway:
 
     def store_asset(self, glb: bytes, report: dict[str, Any] | None = None) -> str:
         """Puts an asset in the gateway's store as a finished job would; returns its id."""
+        from workers.context import WorkerContext
         from workers.models import Capture, Job, new_id
-        from workers.runner import WorkerContext
         from workers.settings import Settings
 
         ctx = WorkerContext.create(Settings(data_dir=self.data_dir))

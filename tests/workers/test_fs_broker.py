@@ -51,8 +51,8 @@ def _bind(folder: str, queue: str, start_at: float) -> None:
 
 
 def test_workers_binding_at_once_all_land_in_the_exchange_table(tmp_path: Path) -> None:
-    """kombu's own bind creates a missing table before it locks it; a worker starting beside
-    another read it empty and died (a JSON error at start-up)."""
+    """kombu's own bind creates a missing table before it locks it, so a worker starting
+    beside another can read it empty and die of a JSON error at start-up."""
     from concurrent.futures import ProcessPoolExecutor
     from multiprocessing import get_context
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import dataclasses
 
 from pipeline.stage_config import ReconstructConfig, config_from_options
-from pipeline.stages import STAGES
-from workers.runner import SECTION_FIRST_STAGE, plan_stages, stage_keys
+from pipeline.stages import SECTION_FIRST_STAGE, STAGES
+from workers.plan import plan_stages, stage_keys
 
 
 def keys(**options: object) -> list[str]:
@@ -77,7 +77,7 @@ def test_a_worker_keeps_its_enhance_networks_between_jobs(tmp_path) -> None:
     smoother, which runs none, leaves them kept; a config that needs others loads them in
     their place."""
     from pipeline.enhance.config import EnhanceConfig
-    from workers.runner import WorkerContext
+    from workers.context import WorkerContext
     from workers.settings import Settings
 
     ctx = WorkerContext.create(Settings(data_dir=tmp_path))

@@ -65,8 +65,8 @@ def test_missing_frame_fails_the_job(rig: Rig) -> None:
 
 
 def test_a_stage_over_the_time_limit_fails_the_job(rig: Rig) -> None:
-    # Remeshing this capture to 2 mm edges takes minutes on any machine (161 s on two cores),
-    # so the 1 s limit always cuts it short; the kernel's child process dies with the stage.
+    # Remeshing this capture to 2 mm edges takes minutes on any machine, so the 1 s limit
+    # always cuts it short; the kernel's child process dies with the stage.
     job = rig.run(**{**FAST_JOB, "target_edge_length_m": 0.002, "remesh": {"iterations": 30}})
     assert job["state"] == "failed", job
     assert "ran longer than the 1 s limit" in job["error"], job

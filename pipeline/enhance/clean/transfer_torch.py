@@ -1,6 +1,7 @@
-"""The light remesh's carry (`remesh_ahead.Carry`) on the enhancement's device: on a GPU the
-finish of the remesh started ahead puts the kernel's result on the moved mesh and measures
-its angles there, where on the host (numpy) they were a third of the finish's own time."""
+"""The light remesh's carry (`pipeline.reconstruct.remesh.speculative.Carry`) on the
+enhancement's device, the torch twin of `speculative.carried_with_angles`: on a GPU the finish
+of the speculative remesh puts the kernel's result on the moved mesh (barycentric transfer)
+and measures its angles there, not on the host."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ from pipeline.reconstruct.remesh.speculative import Carry
 
 
 def carried_on(device: str) -> Carry:
-    """`remesh_ahead.carried_with_angles` on `device`, float64 there, the arrays copied over
+    """`speculative.carried_with_angles` on `device`, float64 there, the arrays copied over
     and back."""
 
     def carry(vertices_m: NDArray[np.float64], source_ids: NDArray[np.int64],

@@ -66,21 +66,3 @@ class ResidualUNet(nn.Module):
         correction = self.conv_out(x)[..., :h, :w] * RESIDUAL_SCALE
         return depth_n + correction
 
-
-class RefinedRegressor(nn.Module):
-    """A frozen regressor's estimate corrected by a second residual U-Net, both fed the base
-    depth's side inputs: the LDM's refinement (`LDMModels.refines`) with a plain network in
-    place of the diffusion model, its control (`benchmarks/enhance_control.py`)."""
-
-    def __init__(self, first: ResidualUNet, second: ResidualUNet) -> None:
-        super().__init__()
-        self.first = first.requires_grad_(False)
-        self.second = second
-
-    def forward(
-        self, depth_n: torch.Tensor, valid: torch.Tensor, side: torch.Tensor | None = None
-    ) -> torch.Tensor:
-        """(B, 1, H, W) the second network's correction of the first's estimate."""
-        with torch.no_grad():
-            estimate_n = self.first(depth_n, valid, side)
-        return self.second(estimate_n, valid, side)

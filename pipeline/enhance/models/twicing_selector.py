@@ -23,8 +23,8 @@ class SelectorConfig:
     passes: int = TwicingBlendConfig.passes
     feature_rings: tuple[int, ...] = TwicingBlendConfig.feature_rings
     boundary_pilot_iterations: int = TwicingBlendConfig.boundary_pilot_iterations
-    """Weights saved before it existed load with the default: the shipped selector, trained
-    without it, gives the same C2M on meshes with open boundaries to 0.5 % (issue 4 notes)."""
+    """Pilot count along open boundaries; weights whose metadata lacks it load with the
+    default."""
     hidden: int = 64
     """Width of the two hidden layers."""
 
@@ -63,8 +63,7 @@ class SelectorEnsemble(nn.Module):
         self.config = members[0].config
 
     def forward(self, features: torch.Tensor) -> torch.Tensor:
-        # The rows are squashed once for all members: a third of the ensemble's time on
-        # beetle's 258 k rows when each member did it.
+        # The rows are squashed once for all members, not once per member.
         squashed = RowMLP.squash(features)
         members = cast(Sequence[TwicingSelector], self.members)
         return torch.stack([m.weights_of_squashed(squashed) for m in members]).mean(dim=0)

@@ -14,7 +14,6 @@ import torch.nn.functional as nnf
 from torch import nn
 
 from pipeline.enhance.models.common import (
-    DETAIL_SCALE,
     FEATURE_CHANNELS,
     RESIDUAL_SCALE,
     ResBlock,
@@ -35,15 +34,6 @@ class VAEConfig:
     """Starting log-variance of the posterior. Starting at the prior's 0 makes early latents
     pure noise, and a decoder that also sees the degraded depth learns to ignore them for good
     (posterior collapse); a small start keeps the latent informative from the first step."""
-    encode_correction: bool = False
-    """The encoder also reads the depth's offset from the guide (the correction the decoder
-    must add). Its other features are local and shift-invariant, so without the offset the
-    latent cannot hold the smooth part of a correction (the pre-smoothing's shrinkage, left
-    low-frequency noise): the shipped VAE decodes its clean and degraded latents alike
-    (2.26 against 2.29 on held-apart renders). With it, after the same 800 CPU steps, the clean
-    latent decodes to 1.93 against the degraded one's 3.05 (without: 2.64 against 2.73), but
-    the whole LDM trained on it came out worse at an equal budget (2.47 against 2.40 after
-    2000 U-Net and 800 end-to-end steps), so it is off (`benchmarks/enhance_vae_offset.py`)."""
 
 
 class DiagonalGaussian:
@@ -90,8 +80,7 @@ class DepthVAE(nn.Module):
     def __init__(self, config: VAEConfig) -> None:
         super().__init__()
         ch = config.channels
-        self.encode_correction = config.encode_correction
-        self.encoder = _Pyramid(ch, FEATURE_CHANNELS + int(config.encode_correction))
+        self.encoder = _Pyramid(ch)
         self.to_moments = nn.Conv2d(ch[3], 2 * LATENT_CHANNELS, 3, padding=1)
         if self.to_moments.bias is not None:
             with torch.no_grad():
@@ -106,16 +95,11 @@ class DepthVAE(nn.Module):
         self.register_buffer("latent_scale", torch.ones(()))
         self.latent_scale: torch.Tensor
 
-    def encode(
-        self, depth_n: torch.Tensor, valid: torch.Tensor, guide_depth_n: torch.Tensor
-    ) -> DiagonalGaussian:
+    def encode(self, depth_n: torch.Tensor, valid: torch.Tensor) -> DiagonalGaussian:
         """Posterior over the (B, 4, H/8, W/8) latent of (B, 1, H, W) depth; H, W divisible by
-        8. `guide_depth_n` is the depth the decoder will be guided by (the degraded one)."""
-        feats = depth_features(depth_n, valid)
-        if self.encode_correction:
-            offset = (depth_n - guide_depth_n) * valid.to(depth_n.dtype) * DETAIL_SCALE
-            feats = torch.cat([feats, offset.clamp(-3.0, 3.0)], dim=1)
-        return DiagonalGaussian(self.to_moments(self.encoder(feats)[-1]))
+        8. Its features are local and shift-invariant: the latent holds the shape's detail,
+        the guide of the decoder its place."""
+        return DiagonalGaussian(self.to_moments(self.encoder(depth_features(depth_n, valid))[-1]))
 
     def decode(
         self,

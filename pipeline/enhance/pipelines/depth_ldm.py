@@ -55,7 +55,7 @@ def sample_depth(
     d, v, (h, w) = padded(depth_n, valid)
     side_p = None if side is None else padded(side, valid)[0]
     scale = models.vae.latent_scale
-    z_start = models.vae.encode(d, v, d).mean * scale
+    z_start = models.vae.encode(d, v).mean * scale
     hint = models.controlnet.hint_of(d, v, side_p)
     ts = ddim.timesteps(schedule, steps, strength)
     a0 = float(schedule.alphas_cumprod[ts[0]])

@@ -1,6 +1,6 @@
-"""`bounded_noise.bounded_noise_refine` in torch on a device (float64), for the enhancement
-on a GPU: the neighbourhoods' ranges are scatter reductions over `mesh_torch`'s neighbour
-pattern rather than scipy's row reductions on the host."""
+"""The midrange estimator's refinement in torch on a device, float64 (`midrange` chooses this
+or `midrange_numpy`): the neighbourhoods' ranges are scatter reductions over `mesh_torch`'s
+neighbour pattern."""
 
 from __future__ import annotations
 
@@ -9,14 +9,15 @@ import torch
 
 from pipeline.enhance import mesh_torch
 from pipeline.enhance.device import csr_tensor, on_device
-from pipeline.enhance.presmooth.midrange import BoundedNoiseConfig, residual_kurtosis
-from pipeline.enhance.presmooth.scale_selection import along
+from pipeline.enhance.presmooth.midrange_common import BoundedNoiseConfig, residual_kurtosis
+from pipeline.enhance.presmooth.scale_selection_common import along
 from pipeline.geometry.mesh import TriangleMesh
 
 
 def refined(noisy: TriangleMesh, smooth: TriangleMesh, config: BoundedNoiseConfig,
             device: str) -> TriangleMesh | None:
-    """`refined_where_bounded(noisy, smooth, config)` (`config.rings` > 0) on `device`."""
+    """`midrange.refined_where_bounded(noisy, smooth, config)` (`config.rings` > 0) on
+    `device`."""
     faces = on_device(smooth.faces.astype(np.int64), device)
     smooth_m = on_device(smooth.vertices_m, device)
     normals = mesh_torch.vertex_normals(smooth_m, faces).double()

@@ -5,8 +5,12 @@
 on a pilot that is itself blurred, so at creases and ears it underestimates the bias and
 smooths too far. The selector reads the same kind of evidence at several neighbourhood sizes
 and is trained on meshes with known truth to weigh the candidates so that the blend's
-distance to the truth is least (`selector_training.py`). The smoothing steps, nearly all of
-the work, run in scipy, or in torch on a device (`FieldOps`) where torch is imported lazily.
+distance to the truth is least (`training/selector.py`).
+
+The smoothing steps, nearly all of the work, run behind one interface (`FieldOps`, in
+`scale_selection_common`): in scipy and numpy on the host (`scale_selection_numpy`) or in
+torch on a device (`scale_selection_torch`). Only `twicing_candidates` picks one, and neither
+imports the other.
 """
 
 from __future__ import annotations
@@ -17,12 +21,11 @@ from math import comb
 from typing import Any
 
 import numpy as np
-import scipy.sparse as sp
 from numpy.typing import NDArray
 
-from pipeline.geometry.boundary import boundary_offset
-from pipeline.geometry.mesh import TriangleMesh, vertex_normals
-from pipeline.geometry.smoothing import mean_operator
+from pipeline.enhance.presmooth import scale_selection_numpy
+from pipeline.enhance.presmooth.scale_selection_common import FieldOps, along
+from pipeline.geometry.mesh import TriangleMesh
 
 
 @dataclass(frozen=True)
@@ -39,10 +42,9 @@ class TwicingBlendConfig:
     """Neighbour-averaging passes each feature is also given at (cumulative sizes)."""
     boundary_pilot_iterations: int = 10
     """Laplacian steps of the pilot on which open boundaries' one-sided umbrella offset is
-    measured and then left out of every smoothing step (`boundary.boundary_offset`), so that
-    long twicings do not retract the boundary; 0 smooths boundary vertices like the rest.
-    Under issue 4's protocol, LDM: beetle's reverse RMS 1.593 -> 1.258 mm (C2M RMS 0.8766 ->
-    0.8808), the bunny's 1.062 -> 0.996 (0.9172 -> 0.9184)."""
+    measured and then left out of every smoothing step
+    (`pipeline.geometry.boundary.boundary_offset`), so that long twicings do not retract the
+    boundary; 0 smooths boundary vertices like the rest."""
 
     @property
     def feature_count(self) -> int:
@@ -64,81 +66,11 @@ class TwicingCandidates:
     made (`FieldOps.average`): for the selector's weights (`weights_averaged`)."""
 
 
-@dataclass(frozen=True)
-class FieldOps:
-    """Where the smoothing steps, nearly all of the work, and the features run on (V, C)
-    per-vertex fields: scipy and numpy on the host (`field_ops`), or torch on a device
-    (`twicing_torch.torch_field_ops`)."""
-
-    step: Callable[[Any], Any]
-    """y + lam (M y - y - c), lam = 0.5, with M the mean operator and c a fixed offset per
-    vertex in each whole (x, y, z) triple of columns: positions (V, 3) take it, a (V, 1)
-    field (the noise probe) has no whole triple and none; float64."""
-    average: Callable[[Any], Any]
-    """M y, float32: it serves only the features, which the selector reads in float32, and
-    the averages of a 294 k-vertex mesh's 30 feature columns take 0.04 s a pass against
-    0.08 s in float64."""
-    to_field: Callable[[NDArray], Any]
-    """A field there, its dtype kept."""
-    to_numpy: Callable[[Any], NDArray]
-    mean: Callable[[Any], Any]
-    """M y, float64."""
-    normals: Callable[[Any], Any]
-    """(V, 3) float64 unit vertex normals of positions y on the mesh's faces, rounded to
-    float32 as `pipeline.geometry.mesh.vertex_normals`."""
-    columns: Callable[[list[Any]], Any]
-    """(V, C) float32 of C (V,) columns."""
-
-
-def field_ops(mean_op: sp.csr_matrix, faces: NDArray[np.int32],
-              offset_m: NDArray[np.float64] | None = None) -> FieldOps:
-    """scipy and numpy on the host; `offset_m` (V, 3) is the c that steps leave out
-    (`boundary.boundary_offset`); None: zero."""
-    mean32 = mean_op.astype(np.float32)
-    return FieldOps(
-        step=leaving_out(lambda y: y + 0.5 * (mean_op @ y - y), offset_m, _same),
-        average=lambda y: mean32 @ y, to_field=_same, to_numpy=_same,
-        mean=lambda y: mean_op @ y,
-        normals=lambda y: vertex_normals(y, faces).astype(np.float64),
-        columns=lambda columns: np.stack(columns, axis=1).astype(np.float32))
-
-
-def leaving_out(step: Callable[[Any], Any], offset_m: NDArray[np.float64] | None,
-                to_field: Callable[[NDArray], Any]) -> Callable[[Any], Any]:
-    """`step` followed by subtracting 0.5 c, c laid out in each whole (x, y, z) triple of a
-    field's columns (none in a trailing column), made once per field width; `step` itself
-    where there is no c. Only the rows where c is not zero (the boundary's) are touched:
-    subtracting it from every row took a tenth of beetle's pre-smoothing."""
-    if offset_m is None:
-        return step
-    rows = np.flatnonzero(np.any(offset_m != 0, axis=1))
-    rows_there = to_field(rows)
-    half_offsets: dict[int, Any] = {}
-
-    def half_offset(columns: int) -> Any:
-        if columns not in half_offsets:
-            tiled = np.zeros((len(rows), columns))
-            tiled[:, : 3 * (columns // 3)] = np.tile(0.5 * offset_m[rows], columns // 3)
-            half_offsets[columns] = to_field(tiled)
-        return half_offsets[columns]
-
-    def stepped(y: Any) -> Any:
-        out = step(y)
-        out[rows_there] -= half_offset(y.shape[1])
-        return out
-
-    return stepped
-
-
-def _same(x: Any) -> Any:
-    return x
-
-
 def twicing_candidates(
     mesh: TriangleMesh, config: TwicingBlendConfig, device: str | None = None
 ) -> TwicingCandidates:
     """The candidates and their features, in scipy and numpy on the host (None), or in torch
-    on `device` (`twicing_torch`).
+    on `device`.
 
     Per vertex, along the pilot's normal and divided by the estimated noise std: the squared
     residual of the mesh about the pilot, the pilot's curvature (signed and absolute, as the
@@ -146,14 +78,7 @@ def twicing_candidates(
     (signed and squared: the bias it would add) and the squared distance of its result from
     the pilot. Each is given at every neighbourhood size in `feature_rings`.
     """
-    if device is None:
-        m = mean_operator(mesh.faces, mesh.vertex_count)
-        ops = field_ops(m, mesh.faces,
-                        boundary_offset(mesh, m, config.boundary_pilot_iterations))
-    else:
-        from pipeline.enhance.presmooth.scale_selection_torch import torch_field_ops
-
-        ops = torch_field_ops(mesh, config.boundary_pilot_iterations, device)
+    ops = _field_ops(mesh, config.boundary_pilot_iterations, device)
     x = ops.to_field(mesh.vertices_m)
     # Every field below is a polynomial in the smoothing step applied to x, the pilot's
     # twicings included (`_step_polynomials`), so one run of steps on x gives them all.
@@ -186,12 +111,14 @@ def twicing_candidates(
         lambda rows: ops.to_numpy(ops.average(ops.to_field(rows))))
 
 
-def along(field: Any, normals: Any) -> Any:
-    """(V,) each row of (V, 3) `field` dotted with its row of `normals` (numpy or torch),
-    column by column: the bits of the rows' sum, which torch on the CPU made six times slower
-    (an (N, 3) array reduced along its rows)."""
-    return (field[:, 0] * normals[:, 0] + field[:, 1] * normals[:, 1]
-            + field[:, 2] * normals[:, 2])
+def _field_ops(mesh: TriangleMesh, boundary_pilot_iterations: int, device: str | None
+               ) -> FieldOps:
+    """The mesh's `FieldOps`: scipy and numpy on the host (None), or torch on `device`."""
+    if device is None:
+        return scale_selection_numpy.mesh_field_ops(mesh, boundary_pilot_iterations)
+    from pipeline.enhance.presmooth import scale_selection_torch
+
+    return scale_selection_torch.mesh_field_ops(mesh, boundary_pilot_iterations, device)
 
 
 def _twicing_polynomial(count: int, passes: int) -> dict[int, int]:
@@ -218,14 +145,12 @@ def _step_polynomials(step: Callable[[Any], Any], x, polynomials: list[dict[int,
     """p(A) x = Σ_n c_n A^n x for each polynomial p = {n: c_n}, A one `step`, from one run
     of as many steps as the highest power.
 
-    Where steps leave out a boundary offset c (`field_ops`), a step is affine, A y = L y -
+    Where steps leave out a boundary offset c (`leaving_out`), a step is affine, A y = L y -
     c / 2. The polynomials here have coefficients that sum to 1 (twicings, and their
     products), so they are affine combinations, which affine maps keep: a twicing of the
-    pilot is the product polynomial applied to x. Twicing the pilot by stepping it beside x
-    gave the same to rounding (1e-15 m) with twice the columns, 1.1 s more of beetle's
-    pre-smoothing. These are not `twice_field` with offset steps, which holds a boundary
-    further (a clean 12 x 12 grid, 60 steps: side 0.086 m here against 0.103 m, of 0.110);
-    the figures in the README and `boundary.py` are this form's.
+    pilot is the product polynomial applied to x, which gives what stepping the pilot beside
+    x would, to rounding, with half the columns. These are not `twice_field` with offset
+    steps, which holds a boundary further.
     """
     terms: dict[int, list[tuple[int, int]]] = {}
     for i, polynomial in enumerate(polynomials):

@@ -1,6 +1,7 @@
-"""`twicing_blend.FieldOps` in torch on a device, built from the faces there: the mean
-operator, the smoothing step and the open boundary's offset (`boundary.boundary_offset`)
-never pass through scipy, so on a GPU the selector's candidates and features are made there."""
+"""The twicings' smoothing steps (`FieldOps`) in torch on a device, built from the faces there
+(`scale_selection` chooses these or `scale_selection_numpy`'s): the mean operator, the
+smoothing step and the open boundary's offset never pass through scipy, so on a GPU the
+selector's candidates and features are made there."""
 
 from __future__ import annotations
 
@@ -9,11 +10,11 @@ import torch
 
 from pipeline.enhance import mesh_torch
 from pipeline.enhance.device import on_device
-from pipeline.enhance.presmooth.scale_selection import FieldOps, leaving_out
+from pipeline.enhance.presmooth.scale_selection_common import FieldOps, leaving_out
 from pipeline.geometry.mesh import TriangleMesh
 
 
-def torch_field_ops(mesh: TriangleMesh, boundary_pilot_iterations: int, device: str
+def mesh_field_ops(mesh: TriangleMesh, boundary_pilot_iterations: int, device: str
                     ) -> FieldOps:
     """The mesh's `FieldOps` on `device`, steps leaving out the boundary offset measured
     after `boundary_pilot_iterations` steps (0: none)."""
@@ -40,9 +41,9 @@ def torch_field_ops(mesh: TriangleMesh, boundary_pilot_iterations: int, device: 
 
 def boundary_offset(mesh: TriangleMesh, faces: torch.Tensor, mean: torch.Tensor,
                     half_step: torch.Tensor, pilot_iterations: int) -> np.ndarray | None:
-    """`boundary.boundary_offset` with its pilot steps, normals and offset on the faces'
-    device (`mean` and `half_step` the mesh's `mesh_torch.mean_operator` at self-weights 0
-    and 0.5); (V, 3) on the host, or None."""
+    """`pipeline.geometry.boundary.boundary_offset` with its pilot steps, normals and offset
+    on the faces' device (`mean` and `half_step` the mesh's `mesh_torch.mean_operator` at
+    self-weights 0 and 0.5); (V, 3) on the host, or None."""
     if pilot_iterations == 0:
         return None
     half = mesh_torch.boundary_half_edges(faces, mesh.vertex_count)

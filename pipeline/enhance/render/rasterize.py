@@ -1,8 +1,9 @@
-"""Orthographic depth rasterizer in torch: `render_depth`'s ray cast, on any torch device.
+"""Depth renders by an orthographic rasterizer in torch, on any torch device: the same
+renders as `ray_cast`'s but for silhouette pixel centres that lie on an edge.
 
 Each (view, face) pair lists the pixel centres inside its projected bounding box; an edge test
 keeps those the face covers, and a per-pixel minimum over (depth, face) keys picks the nearest
-face. Conventions follow `render.render_depth`: pixel (row i, column j) sits at
+face. Conventions follow `camera`: pixel (row i, column j) sits at
 ((j + 0.5) / res * 2 - 1) * half_extent along the view's right (and the same with i along its
 down), depth runs along forward from the near plane and is normalised by the depth range.
 """
@@ -13,7 +14,8 @@ import numpy as np
 import torch
 from numpy.typing import NDArray
 
-from pipeline.enhance.render.views import ViewSet
+from pipeline.enhance.render.camera import DepthRenders, ViewSet
+from pipeline.geometry.mesh import TriangleMesh
 
 _NO_HIT = torch.iinfo(torch.int64).max
 _FACE_BITS = 32
@@ -22,6 +24,17 @@ _FACE_MASK = (1 << _FACE_BITS) - 1
 DEFAULT_MAX_CANDIDATES = 1 << 21
 """Candidate (view, face, pixel) triples handled at once: bounds the working memory (a few
 hundred bytes a candidate); a single face's box is never split."""
+
+
+def depth_renders(mesh: TriangleMesh, views: ViewSet, with_color: bool, device: str
+                  ) -> DepthRenders:
+    """Normalised depth for every view of `mesh` (at least one face), and its interpolated
+    vertex colour where `with_color` and the mesh has colours, rasterized on `device`."""
+    colors = mesh.vertex_colors if with_color else None
+    depth, valid, color = rasterize_depth(
+        mesh.vertices_m, mesh.faces, views, device, vertex_colors=colors
+    )
+    return DepthRenders(views, depth, valid, color)
 
 
 def rasterize_depth(
@@ -64,7 +77,7 @@ def rasterize_depth(
 def project_px(vertices_m: torch.Tensor, views: ViewSet) -> tuple[torch.Tensor, torch.Tensor]:
     """Vertex positions (N, V, 2) as (column, row) in pixels, pixel centres on integers, and
     normalised depth (N, V) from each view's near plane, of `vertices_m` (V, 3), in its dtype
-    and on its device: `render.project` in torch."""
+    and on its device: `camera.project` in torch."""
     axes = np.stack([views.rights, views.downs, views.forwards], axis=1)  # (N, 3, 3)
     axes_t = torch.from_numpy(axes).to(vertices_m.device, vertices_m.dtype)
     center = torch.from_numpy(views.center_m).to(vertices_m.device, vertices_m.dtype)

@@ -66,10 +66,9 @@ class TrainConfig:
     """Steps between checkpoints."""
     kl_weight: float = 1e-3
     """Weight of the VAE's KL term, per pixel (KL summed over the latent, divided by the
-    image's pixels). Against the summed KL, as first written, the weight was some 16 000 times
-    what the mean per-pixel loss can carry: the posterior collapsed and the decoder, which
-    also sees the degraded depth, learnt to ignore the latent (clean and degraded latents
-    decoded alike)."""
+    image's pixels), so that it is on the scale of the mean per-pixel loss: heavier, the
+    posterior collapses and the decoder, which also sees the degraded depth, ignores the
+    latent."""
     kl_warmup_fraction: float = 0.5
     """The KL weight ramps up from 0 over this fraction of the VAE's steps (against collapse)."""
     ldm_max_timestep: int = 600
@@ -77,23 +76,11 @@ class TrainConfig:
     so capacity is not spent on the pure-noise end of the schedule."""
     validation_views: int = 24
     """Validation images scored at the end of each stage."""
-    loss_slope_power: int = 0
-    """The regressor's and the end-to-end stage's depth loss weighs each pixel by cos^p of the
-    clean surface's slant to the view (`slope_weights`); 0: plain depth MSE. The mesh update
-    moves a vertex along each view's ray by its depth change, weighted by cos², so a depth
-    error e moves the surface by e·cos along its normal and p = 4 is the error the mesh sees
-    (`depth_scores`' normal RMSE). Plain MSE is dominated by grazing pixels, and on vertex
-    noise alone, in the update's weighting, the shipped regressor and LDM are worse than the
-    pre-smoothed base they correct (0.608 and 0.588 against 0.583 per mille) while their
-    plain depth error is lower (1.10 and 1.08 against 1.12). But p = 4 did not help: the LDM
-    fine-tuned with it (the shipped LDM's recipe, same pairs and budget) gave 0.592 there and
-    spot 0.777 / fandisk 0.729 mm on meshes, against 0.775 / 0.727 with p = 0. So it is 0."""
     loss_mask_threshold_n: float = SAME_SURFACE_N
     """Pixels where an input is further than this (normalised depth) from the clean render
-    are left out of the losses (`same_surface_mask`): another surface is seen there. The
-    default, 0.05, is what the earlier weights were trained with; `BULK_SURFACE_N` (0.02),
-    which the shipped weights were last trained with (`--loss-mask 0.02`), leaves out the rest
-    of those pixels, which at 0.05 still carried about 40 % of the squared loss."""
+    are left out of the losses (`same_surface_mask`): another surface is seen there.
+    `BULK_SURFACE_N` (`--loss-mask 0.02`, the shipped weights' recipe) leaves out the rest of
+    those pixels, which still carry much of the squared loss at the default."""
     ldm_refines_regressor: bool = True
     """The VAE, LDM and fine-tuning stages train on the regressor's estimate in place of the
     base depth (`LDMModels.refines`), so the LDM learns what the regressor leaves; their
@@ -127,8 +114,7 @@ CONFIGS: dict[str, TrainConfig] = {
         checkpoint_every=2,
         validation_views=2,
     ),
-    # About 52 minutes of optimisation on 2 CPU cores, most of it end-to-end; with data and
-    # validation the whole run stays within an hour.
+    # About an hour on 2 CPU cores with data and validation, most of it end-to-end.
     "small": TrainConfig(
         name="small",
         data=DataConfig(poses_per_mesh=12),
@@ -139,12 +125,8 @@ CONFIGS: dict[str, TrainConfig] = {
         ldm_budget=StageBudget(3000, 8.0, 5e-4),
         finetune_budget=StageBudget(6000, 25.0, 2e-4),
     ),
-    # The shipped weights' recipe, run on one H100 (2026-11-24) with `--procedural 12
-    # --workers 14`: the small networks with 4x the batch and 2.7x the poses. There the
-    # stages took 3.0 / 1.7 / 1.7 / 5.8 minutes (and the pairs 2 minutes); on 2 CPU cores
-    # they would take about a day. Since then its pairs are pre-smoothed by the shipped
-    # selector (`presmooth_learned`), as the enhance stage now does, and its selector stage
-    # is the shipped selector's recipe (13 minutes on 2 CPU cores).
+    # The shipped weights' first training and selector stage (MODEL_CARD.md): the small
+    # networks with 4x the batch and 2.7x the poses; minutes on a GPU, a day on 2 CPU cores.
     "large": TrainConfig(
         name="large",
         selector=SelectorTrainConfig(model=SelectorConfig(hidden=128), draws_per_mesh=6,

@@ -3,7 +3,7 @@
 Source meshes are first remeshed isotropically by the pipeline's own remesh stage, because
 that is what the enhance stage receives. Degradations: vertex noise along normals (the
 benchmark's), Azure-Kinect-like axial depth noise with flying pixels at edges, holes, and 4x
-down-then-up sampling. Everything is in normalised depth (render.py), so the scale of a source
+down-then-up sampling. Everything is in normalised depth (`render/`), so the scale of a source
 mesh does not matter.
 """
 
@@ -36,39 +36,15 @@ class DataConfig:
     """Range of the uniform vertex-noise amplitude along normals, fraction of largest extent."""
     light_noise_probability: float = 0.25
     """Chance a pose's noise amplitude is drawn from [0, noise_fraction[0]) instead: near-clean
-    surfaces, as a good reconstruction or an already enhanced mesh is. Trained only on heavy
-    noise, the networks always removed at least that noise's first-hit bias and pushed clean
-    surfaces inwards (a second pass moved the bunny 1.3 mm in; reconstructions were harmed)."""
+    surfaces, as a good reconstruction or an already enhanced mesh is. Networks trained only on
+    heavy noise remove that noise's first-hit bias from every surface and push clean ones
+    inwards."""
     kinect_probability: float = 0.25
     """Chance a view also gets Azure-Kinect-like axial noise and flying pixels."""
     hole_probability: float = 0.2
     """Chance a view gets holes punched in it."""
     downup_probability: float = 0.2
     """Chance a view is 4x downsampled and bilinearly upsampled."""
-    presmooth_iterations: int = 30
-    """Laplacian smoothing iterations (per pass; the pilot's when adaptive) of the noisy mesh
-    whose render is the networks' base depth (the noisy render rides along as a side input);
-    0: the noisy render is the base.
-    The enhance stage must smooth alike (`EnhanceConfig.presmooth_iterations`). Laplacian
-    smoothing at its best count leaves about 1.2 mm on the bunny, while networks that had to
-    average the noise away from a single view themselves left 1.4-1.5 mm, most of it
-    low-frequency: the mesh's own neighbourhoods average noise better than one view shows it,
-    and the network is left the part smoothing gets wrong (shrinkage, lost features)."""
-    presmooth_passes: int = 2
-    """Passes of that smoothing (`twicing_smooth`): 1 is plain Laplacian smoothing, 2 twicing,
-    which keeps the shape that one pass shrinks (`EnhanceConfig.presmooth_passes` alike)."""
-    presmooth_adaptive: bool = True
-    """Its count chosen per vertex (`adaptive_twicing`), as the enhance stage did before the
-    selector."""
-    presmooth_learned: bool = True
-    """The shipped selector's blend of twicings instead (`selector_presmoothed`), as the enhance
-    stage does (`EnhanceConfig.presmooth_learned`). The shipped regressor was trained with it
-    off (adaptive twicing); the LDM refining it was fine-tuned with it on."""
-    presmooth_bounded: bool = True
-    """The pre-smoothing ends with `bounded_noise_refine` (default settings), as the enhance
-    stage's does (`EnhanceConfig.bounded_noise`), starting from the selector's weights averaged
-    over the neighbours (`BoundedNoiseConfig.weight_passes`). The shipped regressor, LDM and
-    vertex gains were last fine-tuned on such pairs (MODEL_CARD.md, last section)."""
     color_probability: float = 0.5
     """Chance a pose's mesh gets synthetic colour (`synthetic_colors`), whose Canny edges the
     networks then read as at inference on a coloured mesh; the other poses have none (edges
@@ -79,12 +55,10 @@ MIXES: dict[str, dict[str, Any]] = {
     "full": {},
     "mesh": {"kinect_probability": 0.0, "hole_probability": 0.0, "downup_probability": 0.0},
 }
-"""Degradation mixes by name. `full`: every degradation the issue names. `mesh`: only what a
+"""Degradation mixes by name. `full`: every degradation of a depth sensor. `mesh`: only what a
 mesh's renders carry (vertex noise along normals, near-clean surfaces, colour), the input of
 the enhance stage, which renders a mesh: sensor noise, holes and resampling never reach it.
-With the 0.05 loss mask, fine-tuning on `mesh` cut the depth error but left the meshes where
-they were; with the tight mask (`TrainConfig.loss_mask_threshold_n` 0.02) it improved them,
-and the shipped regressor and LDM were last trained on `mesh` (README, Enhancement)."""
+The shipped depth networks are trained on `mesh` with the tight loss mask (MODEL_CARD.md)."""
 
 
 def with_mix(config: DataConfig, mix: str) -> DataConfig:
@@ -128,9 +102,8 @@ def isotropic(mesh: TriangleMesh, edge_m: float) -> TriangleMesh:
     """The mesh remeshed to edges of about `edge_m` by the pipeline's remesh stage.
 
     Vertex noise on a midpoint-subdivided mesh (long thin triangles, uneven valence) folds the
-    surface far more than on the pipeline's isotropic meshes: renders of such training meshes
-    carried about twice the benchmark's first-hit depth bias, and networks trained on them
-    over-corrected by as much. If the remesh kernel fails, midpoint subdivision stands in.
+    surface far more than on the pipeline's isotropic meshes, and networks trained on its
+    renders over-correct. If the remesh kernel fails, midpoint subdivision stands in.
     """
     from pipeline.reconstruct.remesh.isotropic import RemeshConfig, remesh
 
@@ -322,7 +295,7 @@ def pose_pairs(
     forwards = rng.normal(size=(config.views_per_pose, 3))
     views = make_views(noisy.vertices_m, forwards, config.resolution)
     r_noisy = render_depth(noisy, views, with_color=True)
-    r_base = render_depth(_presmoothed(noisy, config), views, with_color=False)
+    r_base = render_depth(_presmoothed(noisy), views, with_color=False)
     r_clean = render_depth(fine, views, with_color=False)
     # Every degradation below only shrinks the valid mask, so the render's edges
     # masked by a view's final mask are that view's edges.
@@ -351,27 +324,25 @@ def pose_pairs(
     )
 
 
-def _presmoothed(noisy: TriangleMesh, config: DataConfig) -> TriangleMesh:
-    """The mesh whose render is the networks' base depth, smoothed as `config` says."""
-    from pipeline.enhance.inference import presmoothed
+def _presmoothed(noisy: TriangleMesh) -> TriangleMesh:
+    """The mesh whose render is the networks' base depth: pre-smoothed as the enhance stage
+    does it, by the shipped selector and the midrange estimator."""
+    from pipeline.enhance.inference import selector_presmoothed
     from pipeline.enhance.presmooth.midrange import BoundedNoiseConfig
     from pipeline.enhance.weights import shipped_bytes
     from pipeline.enhance.weights.loading import load_selector
 
-    selector = load_selector(shipped_bytes("selector")) if config.presmooth_learned else None
-    bounded = BoundedNoiseConfig() if config.presmooth_bounded else None
-    return presmoothed(noisy, config.presmooth_iterations, config.presmooth_passes,
-                       config.presmooth_adaptive, selector, bounded=bounded)
+    return selector_presmoothed(noisy, load_selector(shipped_bytes("selector")),
+                                BoundedNoiseConfig())
 
 
 SAME_SURFACE_N = 0.05
 """`same_surface_mask`'s default threshold (normalised depth): the validation scores' and
-the default loss mask's (the earlier weights were trained with it)."""
+the default loss mask's."""
 BULK_SURFACE_N = 0.02
-"""A tighter threshold, the bulk of the surface. At 0.05 some 0.04 % of the validation pixels
-are still another surface in one input (the base off by 37 per mille RMS there); they made
-the networks' whole lead over the base at depth level and would carry about 40 % of a
-squared loss, while the mesh update, which averages many views, barely feels them."""
+"""A tighter threshold, the bulk of the surface. At `SAME_SURFACE_N` a few pixels still see
+another surface in one input; they carry much of a squared loss while the mesh update, which
+averages many views, barely feels them."""
 
 
 def same_surface_mask(

@@ -96,12 +96,6 @@ def masked_mse(
     return (err**2 * m).sum() / m.sum().clamp_min(1e-6)
 
 
-def loss_weights(clean_n: torch.Tensor, resolution: int, power: int) -> torch.Tensor | None:
-    """The depth loss's pixel weights (`TrainConfig.loss_slope_power`); None (plain MSE, no
-    work on the training step) for power 0."""
-    return None if power == 0 else slope_weights(clean_n, resolution, power)
-
-
 def slope_weights(clean_n: torch.Tensor, resolution: int, power: int) -> torch.Tensor:
     """(B, 1, H, W) cos^power of the slant of the (B, 1, H, W) clean surface to the view:
     cos = 1 / sqrt(1 + |grad z|²) with the slope from central differences of the orthographic

@@ -23,7 +23,7 @@ from pipeline.enhance.pipelines.depth_ldm import (
 from pipeline.enhance.schedulers.ddpm import DDPMSchedule
 from pipeline.enhance.training.config import TrainConfig
 from pipeline.enhance.training.data import DepthPairs
-from pipeline.enhance.training.loop import Checkpoint, CropSampler, fit, loss_weights, masked_mse
+from pipeline.enhance.training.loop import Checkpoint, CropSampler, fit, masked_mse
 
 
 def train_regressor(
@@ -44,8 +44,7 @@ def train_regressor(
 
     def step_loss() -> torch.Tensor:
         deg, deg_valid, clean, mask, side = sampler.batch(config.batch, device)
-        weight = loss_weights(clean, sampler.resolution, config.loss_slope_power)
-        return masked_mse(model(deg, deg_valid, side), clean, mask, weight)
+        return masked_mse(model(deg, deg_valid, side), clean, mask)
 
     log = fit(
         "regressor",
@@ -85,7 +84,7 @@ def train_vae(
     def step_loss() -> torch.Tensor:
         deg, deg_valid, clean, mask, side = sampler.batch(config.batch, device)
         deg = guide_depth(refines, deg, deg_valid, side)
-        posterior = vae.encode(clean, deg_valid, deg)
+        posterior = vae.encode(clean, deg_valid)
         z = posterior.sample()
         recon = vae.decode(z, deg, deg_valid, side)
         kl_weight = config.kl_weight * min(1.0, calls[0] / warm_steps)
@@ -109,7 +108,7 @@ def train_vae(
     with torch.no_grad():
         deg, deg_valid, clean, _, side = sampler.batch(max(config.batch, 8), device)
         deg = guide_depth(refines, deg, deg_valid, side)
-        z = vae.encode(clean, deg_valid, deg).mean
+        z = vae.encode(clean, deg_valid).mean
         vae.latent_scale.fill_(1.0 / float(z.std().clamp_min(1e-6)))
     return vae, log
 
@@ -141,7 +140,7 @@ def train_ldm(
         deg, deg_valid, clean, _, side = sampler.batch(config.batch, device)
         deg = guide_depth(refines, deg, deg_valid, side)
         with torch.no_grad():
-            z0 = vae.encode(clean, deg_valid, deg).mean * vae.latent_scale
+            z0 = vae.encode(clean, deg_valid).mean * vae.latent_scale
         t_max = min(config.ldm_max_timestep, schedule.num_train_steps)
         t = torch.randint(0, t_max, (z0.shape[0],), device=device)
         noise = torch.randn_like(z0)
@@ -193,8 +192,7 @@ def train_finetune(
         steps = int(sampler.rng.choice(config.finetune_steps))
         noise = torch.randn(latent_shape(deg), device=device)
         pred = sample_depth(models, deg, deg_valid, steps, config.finetune_strength, noise, side)
-        weight = loss_weights(clean, sampler.resolution, config.loss_slope_power)
-        return masked_mse(pred, clean, mask, weight)
+        return masked_mse(pred, clean, mask)
 
     trainable = [p for part in parts.values() for p in part.parameters()]
     log = fit(

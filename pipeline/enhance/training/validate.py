@@ -146,7 +146,7 @@ def validate_ldm(
             xp, vp, (h, w) = padded(x, v)
             gp, _, _ = padded(g, v)
             ep, _, _ = padded(e, v)
-            return vae.decode(vae.encode(xp, vp, gp).mean, gp, vp, ep)[..., :h, :w]
+            return vae.decode(vae.encode(xp, vp).mean, gp, vp, ep)[..., :h, :w]
 
         return fn
 

@@ -1,2 +1,2 @@
-"""Moving vertices to the corrected depth: the view steps, each vertex's gain, the bilateral normal
-filter."""
+"""Moving vertices to the corrected depth: the view steps (`steps`, which picks `steps_numpy`
+or `steps_torch`), each vertex's gain, the bilateral normal filter."""

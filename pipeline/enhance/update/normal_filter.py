@@ -7,9 +7,8 @@ vertices move, along those normals only, so that the faces fit them. After the v
 the surface is smooth and what is left of the noise tilts faces against their neighbours:
 the range weight lets a crease keep its two sides apart while that tilt is averaged away.
 It is made for that input: noise of a fraction of an edge on edges short against the radius
-of curvature. On raw noise of an edge or more the range weight shuts out every neighbour
-(a sphere with ±1 cm on 2.5 cm edges keeps 87 % of its error), and on a coarse tessellation
-it bends a clean surface (a 24-segment sphere, 6.5 cm edges on 0.5 m, by 2.5 mm RMS).
+of curvature. On raw noise of an edge or more the range weight shuts out every neighbour and
+most of the noise stays, and on a coarse tessellation it bends a clean surface.
 """
 
 from __future__ import annotations
@@ -45,13 +44,8 @@ class NormalFilterConfig:
     spatial_sigma_edges: float = 1.5
     """Width of the distance weight between face centroids, in mean edge lengths.
 
-    The four were chosen on the seven training meshes under issue 4's protocol (the LDM's
-    update without the light remesh; every combination of 3 or 5 normal rounds, 5, 10 or 20
-    vertex rounds, range 0.15 or 0.2, spatial 1 or 1.5 edges, and on the teapot and cow also
-    8 rounds and range 0.3): the least mean C2M RMS relative to the unfiltered update, 0.981
-    (beetle 0.984, cheburashka 0.966, cow 0.988, homer 0.994, rocker-arm 0.975, suzanne
-    0.978, teapot 0.984). Every combination tried did better than none on every one of them
-    (the worst mean 0.985), so the filter is not tuned to a knife's edge."""
+    The four settings are those of least C2M error after the update on the training meshes;
+    nearby settings do about as well, so the filter is not tuned to a knife's edge."""
 
     def __post_init__(self) -> None:
         if self.normal_iterations < 0 or self.vertex_iterations < 0:
@@ -76,8 +70,7 @@ def filtered_normals(vertices_m: FloatArray, faces: Faces, config: NormalFilterC
 
     The products of each neighbour pair's normals (and, once, centroids) are formed only
     where the pair is, as a sampled product on the sparse pattern, then a round is one sparse
-    product: on beetle's update (516 k faces, 6.6 M pairs) 0.10 s and 0.02 s a round, where
-    gathering both normals of every pair took 0.30 s."""
+    product: cheaper than gathering both normals of every pair."""
     import torch
 
     from pipeline.enhance.device import accelerator, csr_tensor
@@ -144,7 +137,7 @@ def _face_inputs(vertices_m: FloatArray, faces: Faces, device: str) -> FaceInput
 
 def _face_inputs_there(vertices_m: FloatArray, faces: Faces, device: str) -> FaceInputs:
     """`FaceInputs` made in torch on `device` (an accelerator), from the vertices and faces
-    alone: on a GPU the host's share was most of the filter's time."""
+    alone, so that nothing is built on the host."""
     import torch
 
     from pipeline.enhance import mesh_torch

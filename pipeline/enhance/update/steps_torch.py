@@ -1,6 +1,6 @@
-"""The mesh update of `pipeline.enhance.update.steps` in torch float64 on a device: on a GPU the
-numpy and scipy steps (normals, lookups, averaging, smoothing, the fold check) were the host's
-0.4 s of a bunny's enhancement. float64 throughout, so both paths agree to rounding."""
+"""The mesh update in torch on a device (`steps` chooses this or `steps_numpy`): normals,
+lookups, averaging, smoothing and the fold check stay on the device. float64 throughout, so
+both implementations agree to rounding."""
 
 from __future__ import annotations
 
@@ -12,26 +12,26 @@ from numpy.typing import NDArray
 
 from pipeline.enhance.device import csr_on_device, on_device
 from pipeline.enhance.mesh_torch import face_normals, vertex_normals
+from pipeline.enhance.render.camera import DepthRenders
 from pipeline.enhance.render.rasterize import project_px
-from pipeline.enhance.render.views import DepthRenders
-from pipeline.enhance.update.steps import UpdateConfig, ViewSteps
+from pipeline.enhance.update.steps_common import UpdateConfig, ViewSteps
 from pipeline.geometry.mesh import TriangleMesh
 from pipeline.geometry.smoothing import mean_operator
 
 
-def view_steps_on(
+def view_steps(
     mesh: TriangleMesh,
     renders: DepthRenders,
     enhanced_depth_n: NDArray[np.float32],
     config: UpdateConfig,
     device: str,
 ) -> ViewSteps:
-    """`update.view_steps` on `device`; the result in numpy, as the numpy path's."""
+    """`steps.view_steps` on `device`; the result in numpy, as `steps_numpy`'s."""
     views = renders.views
     vertices_m = on_device(mesh.vertices_m, device)
     faces = on_device(mesh.faces.astype(np.int64), device)
-    # scipy builds the operator on the host (30 ms for the bunny): `ViewSteps` carries it
-    # there, and torch's sort-based build took 0.5 s on 2 cores.
+    # scipy builds the operator on the host, where `ViewSteps` carries it for the smoothing
+    # of the unseen vertices.
     mean_op = mean_operator(mesh.faces, mesh.vertex_count)
     normals = smoothed_normals(vertices_m, faces, csr_on_device(mean_op, device),
                                config.normal_smoothing)
@@ -55,11 +55,8 @@ def view_steps_on(
     tan = torch.sqrt(torch.clamp(1.0 - cos**2, min=0.0)) / torch.clamp(cos, min=1e-3)
     tol_n = config.tolerance_px * (1.0 + tan) / res
     visible = seen_ok & (torch.abs(seen_depth_n - depth_n) < tol_n)
-    target_n, target_ok = bilinear(enhanced_n, valid, pixels, max_spread=3.0 * tol_n)
-    if config.follow_change:
-        step_m = bilinear(enhanced_n - own_n, valid, pixels)[0] * views.depth_range_m
-    else:
-        step_m = (target_n - depth_n) * views.depth_range_m
+    _, target_ok = bilinear(enhanced_n, valid, pixels, max_spread=3.0 * tol_n)
+    step_m = bilinear(enhanced_n - own_n, valid, pixels)[0] * views.depth_range_m
     cap_m = config.max_step_fraction * views.half_extent_m
     # A step beyond the cap means the lookup landed on another surface: not this view's.
     visible &= target_ok & (torch.abs(step_m) < cap_m)
@@ -71,14 +68,14 @@ def view_steps_on(
                      _numpy(normals), cap_m, mean_op)
 
 
-def apply_view_steps_on(
+def apply_view_steps(
     mesh: TriangleMesh,
     steps: ViewSteps,
     config: UpdateConfig,
     vertex_gain: NDArray[np.float64] | None,
     device: str,
 ) -> tuple[TriangleMesh, NDArray[np.bool_]]:
-    """`update.apply_view_steps` on `device`; the mesh and (V,) seen mask in numpy."""
+    """`steps.apply_view_steps` on `device`; the mesh and (V,) seen mask in numpy."""
     vertices_m = on_device(mesh.vertices_m, device)
     weights = on_device(steps.weights, device)
     weight = weights.sum(dim=0)
@@ -91,16 +88,13 @@ def apply_view_steps_on(
     scale = torch.clamp(steps.cap_m / torch.clamp(length_m, min=1e-30), max=1.0)
     shift_m = shift_m * scale[:, None]
     seen_host = _numpy(seen)
-    # The unseen rows alone, sliced on the host where `seen` has to go anyway: a few percent
+    # The unseen rows alone, sliced on the host where `seen` has to go anyway: a small share
     # of the operator to carry to the device.
     unseen = np.flatnonzero(~seen_host)
     unseen_op = csr_on_device(steps.mean_op[unseen], device) if len(unseen) else None
     unseen_at = on_device(unseen, device)
-    iterations = config.unseen_iterations
-    if config.unseen_follow_moves:
-        moved_m = vertices_m + smooth_unseen(shift_m, unseen_at, unseen_op, iterations)
-    else:
-        moved_m = smooth_unseen(vertices_m + shift_m, unseen_at, unseen_op, iterations)
+    moved_m = vertices_m + smooth_unseen(shift_m, unseen_at, unseen_op,
+                                         config.unseen_iterations)
     faces = on_device(mesh.faces.astype(np.int64), device)
     return mesh.with_vertices(_numpy(unfolded(vertices_m, moved_m, faces))), seen_host
 
@@ -119,7 +113,7 @@ def bilinear(
     image: torch.Tensor, valid: torch.Tensor, pixels: Pixels,
     max_spread: float | torch.Tensor = math.inf,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """`update._bilinear` over a (K, H, W) stack of float32 images with their (K, H, W) valid
+    """`steps_numpy.bilinear` over a (K, H, W) stack of float32 images with their (K, H, W) valid
     masks at (P,) `pixels`: float64 values and their validity."""
     side = pixels.resolution
     flat, flat_valid = image.reshape(-1), valid.reshape(-1)
@@ -156,7 +150,7 @@ def smoothed_normals(vertices_m: torch.Tensor, faces: torch.Tensor, mean_op: tor
 
 def smooth_unseen(field: torch.Tensor, unseen: torch.Tensor, unseen_op: torch.Tensor | None,
                   iterations: int) -> torch.Tensor:
-    """`update._smooth_unseen` of a (V, 3) field, given the (U,) unseen vertices and their
+    """`steps_numpy.smooth_unseen` of a (V, 3) field, given the (U,) unseen vertices and their
     (U, V) rows of the mean operator (None when there are none)."""
     if unseen_op is None:
         return field
@@ -168,12 +162,12 @@ def smooth_unseen(field: torch.Tensor, unseen: torch.Tensor, unseen_op: torch.Te
 
 def unfolded(before_m: torch.Tensor, after_m: torch.Tensor, faces: torch.Tensor
              ) -> torch.Tensor:
-    """`update.unfolded` of (V, 3) vertices and (F, 3) int64 faces."""
+    """`steps_numpy.unfolded` of (V, 3) vertices and (F, 3) int64 faces."""
     normals_before = face_normals(before_m, faces)
     out = after_m.clone()
     check = torch.arange(len(faces), device=faces.device)
     put_back = torch.zeros(len(out), dtype=torch.bool, device=out.device)
-    # As in numpy: each round puts back at least one moved vertex, and only the faces at the
+    # As in `steps_numpy`: each round puts back at least one moved vertex, and only the faces at the
     # vertices put back are checked again.
     while len(check):
         turned = torch.sum(face_normals(out, faces[check]) * normals_before[check], dim=1) < 0

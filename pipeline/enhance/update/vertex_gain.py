@@ -1,11 +1,9 @@
 """How much of the networks' correction each vertex follows, from what the views say about it.
 
-A fixed share (`EnhanceConfig.correction_gain`) follows a third of every correction, where
-the networks are right about a third of what is left after pre-smoothing. Whether a vertex's
-correction is worth following shows across the views that see it: views that agree, and a
-step of the size the remaining noise has, are trusted more than one view's lone large step.
-A small network (`models/vertex_gain.py`, trained by `gain_training.py`) reads these features
-and gives each vertex its own gain.
+Whether a vertex's correction is worth following shows across the views that see it: views
+that agree, and a step of the size the remaining noise has, are trusted more than one view's
+lone large step. A small network (`models/vertex_gain.py`, trained by `training/gain.py`)
+reads these features and gives each vertex its own gain, in place of one share for all.
 """
 
 from __future__ import annotations
@@ -13,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.enhance.update.steps import ViewSteps
+from pipeline.enhance.update.steps_common import ViewSteps
 
 GAIN_FEATURES = 4
 """Per-vertex features: mean step along the normal, its spread over the views (both in edge

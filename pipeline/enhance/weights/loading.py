@@ -36,18 +36,15 @@ def weights_from_bytes(data: bytes, device: str | torch.device = "cpu"
     float32.
 
     The file's tensor bytes go to `device` in one copy and each dtype's tensors are converted
-    there in one op, then handed out as views. Loaded on the CPU and then moved, torch's CPU
-    ops on the weights (a cat and a conversion, parallel on every core) waited on the cores
-    of the light remesh's children, starting beside them. On one H100 machine the networks'
-    stage took 0.57-0.59 s that way and 0.24-0.37 s loaded this way, with the children both
-    times; 0.23-0.24 s with none (README, the H100 section)."""
+    there in one op, then handed out as views: loaded on the CPU and then moved, torch's CPU
+    ops on the weights (parallel on every core) would wait on the cores of the light
+    remesh's children, starting beside them."""
     import torch
 
     header_len = int.from_bytes(data[:8], "little")
     header = json.loads(data[8 : 8 + header_len])
     config = json.loads(header.pop("__metadata__", {}).get("config", "{}"))
-    # One copy, writable for torch (a bytes slice first copied it twice: 13 ms, not 0.5 ms,
-    # for the LDM's file).
+    # One copy, writable for torch (a bytes slice would copy it twice).
     raw = torch.frombuffer(bytearray(memoryview(data)[8 + header_len :]),
                            dtype=torch.uint8).to(device)
     state: dict[str, torch.Tensor] = {}
@@ -90,38 +87,29 @@ def _with_weights(make: Callable[[], Module], state: dict[str, torch.Tensor]) ->
 
 
 def load_regressor(data: bytes, device: str | torch.device = "cpu"):
-    """A `ResidualUNet`, or a `RefinedRegressor` where the metadata names the regressor it
-    refines (`regressor_to_bytes`), its weights on `device`."""
-    from pipeline.enhance.models.regressor import RefinedRegressor, RegressorConfig, ResidualUNet
+    """A `ResidualUNet`, its weights on `device`."""
+    from pipeline.enhance.models.regressor import RegressorConfig, ResidualUNet
 
     state, cfg = weights_from_bytes(data, device)
-    refines_cfg = cfg.pop("refines_regressor", None)
-    def make():
-        second = ResidualUNet(RegressorConfig(**_tuples(cfg)))
-        return second if refines_cfg is None else RefinedRegressor(
-            ResidualUNet(RegressorConfig(**_tuples(refines_cfg))), second)
-
-    return _with_weights(make, state)
+    return _with_weights(lambda: ResidualUNet(RegressorConfig(**_tuples(cfg))), state)
 
 
 def regressor_to_bytes(model, half: bool = False) -> bytes:
-    """safetensors bytes of a `ResidualUNet` or a `RefinedRegressor` (with the regressor it
-    refines, so the two cannot be mismatched), its config as metadata."""
+    """safetensors bytes of a `ResidualUNet`, its config as metadata."""
     from dataclasses import asdict
 
-    from pipeline.enhance.models.regressor import RefinedRegressor
-
-    if isinstance(model, RefinedRegressor):
-        meta = {**asdict(model.second.config), "refines_regressor": asdict(model.first.config)}
-    else:
-        meta = asdict(model.config)
-    return weights_to_bytes(model.state_dict(), meta, half)
+    return weights_to_bytes(model.state_dict(), asdict(model.config), half)
 
 
 def load_vae(data: bytes, device: str | torch.device = "cpu"):
+    """A `DepthVAE`, its weights on `device`."""
     from pipeline.enhance.models.vae import DepthVAE, VAEConfig
 
     state, cfg = weights_from_bytes(data, device)
+    # The shipped file's metadata names an encoder input, off: the encoder reads depth alone.
+    if cfg.pop("encode_correction", False):
+        raise ValueError("vae: an encoder reading the correction (encode_correction) is not "
+                         "supported")
     return _with_weights(lambda: DepthVAE(VAEConfig(**_tuples(cfg))), state)
 
 
@@ -235,9 +223,7 @@ def model_bytes(config: EnhanceConfig, name: str) -> bytes:
 def load_enhancer(config: EnhanceConfig):
     """`config.method`'s depth network (the regressor, or the LDM's `LDMModels`), loaded
     and moved to `config.device`; on the CPU its weights in channels-last order, where
-    oneDNN's convolutions run quicker (the bunny's 6 views through the LDM on 2 cores
-    2.09-2.26 -> 1.66-1.83 s, the output within 3.4e-6 of normalised depth). Not measured
-    on a GPU, so left as it was there."""
+    oneDNN's convolutions run quicker (on a GPU in torch's default layout)."""
     import torch
 
     from pipeline.enhance.device import resolve_device

@@ -8,7 +8,7 @@ shortest edge. Each pass works on an independent set of operations chosen in par
 
 The operations take the faces' angles and hand them on with the rows of the faces they
 changed recomputed: a pass touches a few hundred of a few hundred thousand faces, and
-measuring every angle again was a third of the clean-up's time. For the same reason each
+measuring every angle again would be a third of the clean-up's time. For the same reason each
 operation builds its edge table over the faces around its candidates only
 (`_near_edge_table`), and `enforce_angles` runs the passes on a patch around the faces
 outside the criteria, not on the whole mesh.
@@ -61,8 +61,8 @@ def _near_edge_table(faces: Faces, cand_face: NDArray[np.int64], vertex_count: i
     whether a vertex is on the boundary, its neighbours, which pairs are edges), and its
     edges keep their order in the whole table. Away from them it is wrong: edges on the
     patch's own rim read as used once, like boundary edges, so the callers read what they
-    derive from it only at their candidates. On beetle's light remesh the whole tables
-    were 1.2 s of a 2.7 s clean-up; an operation has a few hundred candidates."""
+    derive from it only at their candidates. An operation has a few hundred candidates, and
+    the whole mesh's tables would be most of the clean-up's time."""
     at = np.zeros(vertex_count, dtype=bool)
     at[faces[cand_face].ravel()] = True
     near = np.flatnonzero(faces_at(faces, at))
@@ -174,8 +174,7 @@ def collapse_needles(vertices_m: FloatArray, faces: Faces, angles_deg: FloatArra
         a, b = a[ok], b[ok]
         new_pos, new_faces, alive = _apply_collapses(vertices_m, faces, a, b, boundary_vertex)
     # The merged ends stay in the array, used by no face: `enforce_angles` compacts once at
-    # its end: on the bunny's remesh ahead the clean-up went 84-96 -> 75-85 ms (min-median),
-    # the same mesh.
+    # its end, quicker than compacting after every pass.
     out_f = new_faces[alive]
     out_angles = angles[alive]
     # Only faces at a kept end changed: it moved, or took the faces of the end merged into it.
@@ -269,9 +268,8 @@ def _outside(angles_deg: FloatArray, min_angle_deg: float, max_angle_deg: float
 PATCH_RINGS = 2
 """How many rings around the faces outside the criteria `enforce_angles` works on. An
 operation reads the faces at the corners of a face it fixes, and the faces it leaves outside
-the criteria are next to it: on the bunny's, beetle's and suzanne's light remesh one ring was
-enough for every pass. Where an operation would reach the patch's rim all the same, the
-clean-up runs on the whole mesh."""
+the criteria are next to it, so one ring is enough for a light remesh's passes. Where an
+operation would reach the patch's rim all the same, the clean-up runs on the whole mesh."""
 
 
 def _patch(faces: Faces, seed_faces: NDArray[np.bool_], vertex_count: int, rings: int
@@ -341,9 +339,8 @@ def enforce_angles(vertices_m: FloatArray, faces: Faces, angles_deg: FloatArray,
 
     The passes run on the faces within `PATCH_RINGS` rings of those outside the criteria,
     numbered in the mesh's order, so every choice is the one the whole mesh would give and
-    the result is the same bit for bit. The bunny's light remesh ahead has 211 k faces, 31 of
-    them outside the criteria: its clean-up went 64-68 -> 18-20 ms (min-median) on 2 cores,
-    beetle's 231-257 -> 48-55 ms, the same meshes."""
+    the result is the same bit for bit, at a fraction of the time: a light remesh leaves a
+    few dozen of a few hundred thousand faces outside the criteria."""
     outside = _outside(angles_deg, min_angle_deg, max_angle_deg)
     if not outside.any():
         out_v, out_f = compact(vertices_m, faces)

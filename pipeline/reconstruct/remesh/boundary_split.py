@@ -1,15 +1,14 @@
 """Long edges at an open boundary bisected before remeshing (`split_boundary_edges`).
 
 A remeshing kernel that holds the boundary (remesh_botsch) neither splits these edges nor
-collapses them, so a coarse mesh's boundary vertices stay hubs of long fans: beetle remeshed
-to 5 mm edges kept a boundary vertex with 514 neighbours, its edges up to 18 cm long.
+collapses them, so a coarse mesh's boundary vertices stay hubs of long fans (hundreds of
+neighbours, edges tens of target lengths long).
 Longest-edge bisection (Rivara): a face is only ever cut across its longest edge, so its
 pieces do not become ever thinner.
 
-Every round needs the edge table of the faces it may cut, and on a mesh of 211 k faces with
-a few dozen long boundary edges (the bunny's LDM update) four rounds over the whole mesh took
-0.38-0.5 s; the rounds run on the faces near the long edges instead (`REGION_RINGS`), with the
-same result.
+Every round needs the edge table of the faces it may cut, and a mesh of a few hundred thousand
+faces typically has a few dozen long boundary edges, so the rounds run on the faces near the
+long edges (`REGION_RINGS`) rather than over the whole mesh, with the same result.
 """
 
 from __future__ import annotations

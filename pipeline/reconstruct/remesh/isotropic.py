@@ -2,7 +2,7 @@
 
 The kernel is gpytoolbox's ``remesh_botsch`` (edge split, collapse, flip, tangential
 relaxation, projection back onto the input), given boundary edges no longer than it would
-leave interior ones (it holds the boundary). It is native code that has crashed the whole
+leave interior ones (it holds the boundary). It is native code that can crash the whole
 process on some inputs (cow.obj), so the mesh is repaired first and the kernel runs in a
 child process: a crash, an error or a timeout there leaves the caller running, with the
 repaired input returned and a warning in the stats. Minimum/maximum angle criteria are then
@@ -69,7 +69,7 @@ class RemeshConfig:
     """The child is stopped after this long and the input is kept."""
     kernel_processes: int | None = 1
     """Children the isolated kernel's work is split over, each remeshing a spatial piece with
-    the cuts held (`remesh_pieces`; None: one per core, at most one per `MIN_PIECE_FACES`
+    the cuts held (`pieces`; None: one per core, at most one per `MIN_PIECE_FACES`
     faces; `kernel_piece_count`). Only for a target near the mesh's own edge length: a
     remesh to a much longer one would keep a seam of short edges along each cut."""
 
@@ -92,12 +92,9 @@ class RemeshConfig:
 
 MIN_PIECE_FACES = 25_000
 """Faces a piece of the kernel's work has at least (`kernel_processes`): a child takes about
-0.2 s to start, the kernel about 5 us a face (the bunny's LDM update, 211 k faces, 0.95 s).
-The enhancement starts its children ahead (`remesh_kernel.kernel_children`), so their start
-is off the way: on the device machine's 16-core H100 host the bunny's update waited 0.265 s
-for the kernel in 8 pieces, 0.476 s in 4 (`benchmarks/remesh_speed.py`), and the bunny's
-enhancement took 0.97-1.03 s, against 1.15-1.18 s in 4 pieces on another H100 machine (50 k
-before)."""
+0.2 s to start, the kernel about 5 us a face, so a smaller piece would spend more on its child
+than it saves. The enhancement starts its children ahead (`kernel.kernel_children`), so their
+start is off the way (`benchmarks/remesh_speed.py` times the split)."""
 
 
 def kernel_piece_count(face_count: int, processes: int | None) -> int:
@@ -130,7 +127,7 @@ def start_pieces(vertices_m: FloatArray, faces: Faces, count: int, config: Remes
                  children: Sequence[KernelChild] = (), measure_lost: bool = False,
                  locate: bool = False) -> Callable[[], KernelOutcome]:
     """The kernel on a mesh already split (`split_boundary_edges`) and in a spatial order,
-    one child per spatial piece (`remesh_pieces`), and a call that waits for them and joins
+    one child per spatial piece (`pieces`), and a call that waits for them and joins
     them. One piece failing fails the whole. Where `locate`, the joined result's vertices
     come as points of the input's faces (`source_ids` index `vertices_m`).
 
@@ -201,9 +198,8 @@ def remesh(mesh: TriangleMesh, config: RemeshConfig, children: Sequence[KernelCh
     Where the kernel's result may be dropped (`max_kernel_added_outside`,
     `max_kernel_lost_edges`), the figures it is judged by are measured in its children
     (`KernelResult`), and the input is cleaned up only where it is dropped: cleaning it up
-    beside the children, in case, was the caller's longest step on 16 cores (the bunny's
-    light remesh, 0.35 s of 1.0). The kernel's children may have been started ahead
-    (`children`: `remesh_kernel.kernel_children`).
+    beside the children, in case, would be the caller's longest step on many cores. The
+    kernel's children may have been started ahead (`children`: `kernel.kernel_children`).
     """
     vertices, faces, removed = repair(mesh.vertices_m, mesh.faces, config.min_component_share)
     if len(faces) == 0:
@@ -243,8 +239,7 @@ def surface_lost_edges(input_vertices_m: FloatArray, result_vertices_m: FloatArr
     """How far the input vertex furthest from every vertex of the result lies from them, in
     edge lengths `edge_m`. Large where the result has cut part of the input's surface away, or
     kept faces far longer than `edge_m` (an upper bound of how far the input's vertices are
-    from the result's surface). 0.6-1.0 for a kernel round that kept the surface (the
-    benchmark's ten updates)."""
+    from the result's surface). About 1 or less for a kernel round that kept the surface."""
     return furthest_from_m(input_vertices_m, result_vertices_m) / edge_m
 
 
@@ -270,8 +265,7 @@ def cleaned_up(vertices_m: FloatArray, faces: Faces, config: RemeshConfig,
     """The angle clean-up of a mesh, and `stats` with its angle figures added (`angles`: the
     faces' `triangle_angles_deg`, where they are already known). The mesh is put in a spatial
     order first unless it is `in_order`, as the kernel's results are: it keeps its input's
-    order, which was spatial, and sorting them again cost as much as the clean-up gained
-    (the bunny's light remesh, 0.07 s each)."""
+    spatial order, and sorting them again would cost as much as the clean-up gains."""
     angles = triangle_angles_deg(vertices_m, faces) if angles is None else angles
     stats["angles_before_cleanup"] = angle_figures(angles, config)
     if not in_order:

@@ -1,10 +1,11 @@
 """The remesh kernel, gpytoolbox's ``remesh_botsch``, and the child interpreter it runs in.
 
-The kernel is native code that has crashed the whole process on some inputs (cow.obj), so
+The kernel is native code that can crash the whole process on some inputs (cow.obj), so
 `remesh` runs it in a child: a crash, an error or a timeout there leaves the caller running.
 A child can be started ahead of its work (`KernelChild.start`), so that the interpreter's
 start and the kernel's import are done while the caller works on what comes before the
-remesh: the enhancement starts its children before it renders (`kernel_children`).
+remesh: the enhancement starts its children before it renders (`kernel_children`). Why
+children, and in pieces: docs/decisions/remesh-kernel-children.md.
 """
 
 from __future__ import annotations
@@ -64,10 +65,10 @@ KernelOutcome = tuple[KernelResult | None, str | None]
 def kernel(vertices_m: FloatArray, faces: Faces, edge_m: float, iterations: int
            ) -> tuple[FloatArray, Faces, NDArray[np.int64]]:
     """gpytoolbox's ``remesh_botsch`` (boundary vertices held, projection on), called past its
-    Python wrapper, whose input checks (row-wise sorts of every half-edge) took 1.8 s of its
-    2.9 s on a 100 k-vertex mesh; the same checks here take a tenth of that. The wrapper's
-    contract is kept: the held vertices (the boundary's, ascending; returned third) come
-    first. A test holds the two equal."""
+    Python wrapper, whose input checks (row-wise sorts of every half-edge) take most of its
+    time; the same checks here take a tenth as long. The wrapper's contract is kept: the held
+    vertices (the boundary's, ascending; returned third) come first. A test holds the two
+    equal."""
     from gpytoolbox_bindings import _remesh_botsch_cpp_impl
 
     v = np.asarray(vertices_m, np.float64)
@@ -94,8 +95,7 @@ def boundary_split_kernel(vertices_m: FloatArray, faces: Faces, edge_m: float,
                           iterations: int) -> tuple[FloatArray, Faces, NDArray[np.int64]]:
     """`kernel` on the mesh with its long boundary edges split first, which the kernel
     cannot do as it holds the boundary, in a spatial order (`in_spatial_order`): the
-    whole mesh in one child (on beetle's update 0.35 s and 0.12 s, beside the kernel's
-    2.8 s, on the fifteenth session's machine)."""
+    whole mesh in one child; both steps are small beside the kernel."""
     v, f, _ = in_spatial_order(*split_boundary_edges(vertices_m, faces, edge_m))
     return kernel(v, f, edge_m, iterations)
 
@@ -104,8 +104,8 @@ def furthest_from_m(input_vertices_m: FloatArray, result_vertices_m: FloatArray)
     """How far the vertex of `input_vertices_m` furthest from every vertex of
     `result_vertices_m` lies from them, metres: libigl's AABB point-to-mesh distance with the
     result's vertices as one-point simplices. The kernel's module holds it already, where
-    scipy's KD-tree (as fast) cost each child 0.4 s of its start in importing scipy.spatial,
-    on cores the enhancement's stages were using."""
+    scipy's KD-tree (as fast) would cost each child a slow import of scipy.spatial, on cores
+    the enhancement's stages are using."""
     from gpytoolbox_bindings import _point_mesh_squared_distance_cpp_impl
 
     if len(input_vertices_m) == 0:
@@ -167,14 +167,14 @@ class KernelChild:
 
     A plain child process rather than multiprocessing: it never re-imports the caller's
     main module, so it works from any script, worker or test runner. The arrays go both ways
-    as files: through pipes, a thread of the caller had to move each 64 KB, waiting its turn
-    for the interpreter lock while the caller worked, and the children waited on it (on the
-    device machine's H200 host, 1.2 s of the bunny's light remesh went in waiting).
+    as files: through pipes, a thread of the caller would have to move each 64 KB, waiting its
+    turn for the interpreter lock while the caller works, and the children would wait on it.
     """
 
     def __init__(self) -> None:
         self.folder = Path(tempfile.mkdtemp(prefix="volumesh-remesh-"))
-        package_root = str(Path(__file__).resolve().parents[1])
+        # The folder holding this `pipeline`, so the child runs this very kernel.
+        package_root = str(Path(__file__).resolve().parents[3])
         env = dict(os.environ)
         env["PYTHONPATH"] = os.pathsep.join(p for p in (package_root, env.get("PYTHONPATH"))
                                             if p)
@@ -266,9 +266,8 @@ def run_isolated(vertices_m: FloatArray, faces: Faces, edge_m: float, iterations
 
 def save_arrays(folder: Path, **arrays: NDArray[Any] | np.generic) -> None:
     """`arrays` as one .npy file each in `folder`, made here: how requests and results pass
-    between the caller and a child. An .npz zips them and checks a CRC of every byte it
-    reads, on the path of the remesh ahead's finish: there, on 2 cores, the bunny's wait for
-    its two pieces went 0.046-0.057 -> 0.041-0.051 s (five runs each), the same mesh."""
+    between the caller and a child. Plain .npy rather than an .npz, which zips them and checks
+    a CRC of every byte it reads, on the path of the speculative remesh's finish."""
     folder.mkdir()
     for name, array in arrays.items():
         np.save(folder / f"{name}.npy", array)

@@ -2,16 +2,16 @@
 
 The kernel (gpytoolbox's ``remesh_botsch``) is single-threaded, and it holds every boundary
 vertex of what it is given: neither moved, nor removed, nor joined by a new edge split. So a
-mesh whose faces are in a spatial order (`mesh_order`) can be cut into runs of faces, each
+mesh whose faces are in a spatial order (`geometry.order`) can be cut into runs of faces, each
 run remeshed in its own process with the cut held like a boundary, and the results joined
 again at the held vertices, which every piece keeps by the input's index. No seam is matched
 by position, so none can open.
 
 What it costs: the cut's vertices keep their place and the cut's edges stay, so near it the
 kernel only relaxes the free side. That is harmless where the kernel runs at the mesh's own
-edge length (the enhancement's light remesh: on the bunny's LDM update, C2M RMS 0.66126 mm
-in two pieces against 0.66128 mm in one), but a remesh to a much longer target would keep a
-seam of short edges, so only the light remesh asks for pieces.
+edge length (the enhancement's light remesh: the pieces' accuracy matches one whole run's),
+but a remesh to a much longer target would keep a seam of short edges, so only the light
+remesh asks for pieces.
 """
 
 from __future__ import annotations

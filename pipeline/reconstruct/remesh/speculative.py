@@ -1,20 +1,19 @@
-"""A remesh started before its mesh's vertices have their last positions: the enhancement's
-light remesh, started on the mesh its update is about to move.
+"""Speculative remesh: a remesh started before its mesh's vertices have their last positions,
+the enhancement's light remesh started on the mesh its update is about to move.
 
 The update moves the pre-smoothed mesh's vertices and keeps its faces; the light remesh then
 remeshes the moved mesh at its own edge length. Its kernel (native, single-threaded, in
-child processes) is most of the remesh's time, and on a GPU it was most of the whole
-enhancement's, waiting for the update to end. Here it starts on the mesh the update will
-move, while the networks and the update run, and its result is carried onto the moved mesh
-when that is ready: the kernel projects each of its vertices onto the mesh it was given, so
-each lies on one of that mesh's faces (`remesh_kernel.located_on`), and it goes to the point
-with the same barycentric coordinates on that face of the moved mesh.
+child processes) is most of the remesh's time, and on a GPU it would otherwise wait for the
+update to end. Here it starts on the mesh the update will move, while the networks and the
+update run, and its result is carried onto the moved mesh when that is ready (barycentric
+transfer): the kernel projects each of its vertices onto the mesh it was given, so each lies
+on one of that mesh's faces (`kernel.located_on`), and it goes to the point with the same
+barycentric coordinates on that face of the moved mesh.
 
 So the kernel's splits, collapses, flips and relaxation are chosen on the surface before the
-update, which moves vertices by a fraction of an edge (the bunny's LDM update: 0.24 mm on
-average, 2.1 mm at most, edges of 5 mm), and so is whether its result is kept
+update, which moves vertices by a fraction of an edge, and so is whether its result is kept
 (`RemeshConfig.max_kernel_added_outside`, `max_kernel_lost_edges`). The angle clean-up runs
-on the moved mesh, as in `remesh.remesh`.
+on the moved mesh, as in `isotropic.remesh`.
 """
 
 from __future__ import annotations
@@ -53,7 +52,7 @@ from pipeline.reconstruct.remesh.kernel import Faces, FloatArray, KernelChild, K
 Carry = Callable[[FloatArray, NDArray[np.int64], FloatArray, Faces], tuple[FloatArray, FloatArray]]
 """The kernel's result carried onto the moved mesh (`carried_with_angles`'s arguments and
 outcome): a finish's one full-mesh step that another device can take (on a GPU,
-`enhance.carry_torch.carried_on`)."""
+`pipeline.enhance.clean.transfer_torch.carried_on`)."""
 
 
 def carried_with_angles(vertices_m: FloatArray, source_ids: NDArray[np.int64],
@@ -79,7 +78,7 @@ class RemeshAhead:
     vertex_order: NDArray[np.int64]
     """(V',) the split mesh's vertex at each place of the kernel's input (a spatial order)."""
     given: dict[str, float]
-    """The angle figures of the mesh the kernel was given (`remesh.angle_figures`)."""
+    """The angle figures of the mesh the kernel was given (`isotropic.angle_figures`)."""
     stats: dict[str, Any]
 
 
@@ -93,7 +92,7 @@ class CheckedFaces:
     """`repair` (no small pieces dropped) leaves the faces as they are (`is_repaired`), so
     only their areas need checking once the vertices have moved."""
     edges: NDArray[np.int64]
-    """(E, 2) the faces' undirected edges (`mesh_repair.edge_table`)."""
+    """(E, 2) the faces' undirected edges (`pipeline.geometry.repair.edge_table`)."""
     opposite: NDArray[np.int64]
     """(F, 3) the edge opposite each corner."""
 
@@ -107,15 +106,15 @@ def start_remesh_ahead(mesh: TriangleMesh, config: RemeshConfig,
                        children: Sequence[KernelChild] = (),
                        checked: CheckedFaces | None = None) -> RemeshAhead | None:
     """The remesh's kernel started on `mesh` (repaired, long boundary edges split, in a
-    spatial order, in pieces: `remesh.start_pieces`), each result vertex located on the
+    spatial order, in pieces: `isotropic.start_pieces`), each result vertex located on the
     kernel's input. None where the repair drops a vertex, so that the moved mesh's vertices
     would not match, or where the kernel runs in this process or not at all (then remesh
-    the moved mesh as it is, `remesh.remesh`).
+    the moved mesh as it is, `isotropic.remesh`).
 
     `checked`: `mesh`'s faces, checked beforehand. Where they need no repair only their areas
-    are checked here (the rest of the repair took 0.15-0.2 s of the bunny's), and the split
-    reads their edge table. Everything after the children have their pieces (the input's
-    angle figures) is off the kernel's way."""
+    are checked here, not the whole repair, and the split reads their edge table. Everything
+    after the children have their pieces (the input's angle figures) is off the kernel's
+    way."""
     if config.iterations == 0 or not config.isolate:
         return None
     vertices_m, faces, removed = _repaired(mesh, config, checked is not None and checked.repaired)
@@ -130,8 +129,7 @@ def start_remesh_ahead(mesh: TriangleMesh, config: RemeshConfig,
     count = kernel_piece_count(len(faces), config.kernel_processes)
     joined = start_pieces(kernel_input.vertices_m, kernel_input.faces, count, config, children,
                           measure_lost=config.max_kernel_lost_edges is not None, locate=True)
-    # Joining the pieces (loading the children's arrays, stitching them and their sources:
-    # 0.03-0.05 s on the bunny here, about 2.5 times that on the device machine's host) is
+    # Joining the pieces (loading the children's arrays, stitching them and their sources) is
     # done while the networks and the update run, where the kernel ends before them, rather
     # than after them on the finish's way.
     wait = in_background(joined)
@@ -166,11 +164,11 @@ def finish_remesh_ahead(ahead: RemeshAhead, moved: TriangleMesh,
                         ) -> tuple[TriangleMesh, dict[str, Any]]:
     """The remesh ended on `moved`, the mesh given to `start_remesh_ahead` with its vertices
     moved: the kernel's result carried onto it (by `carry`) and cleaned up, or, where the
-    kernel failed or is dropped, `moved` cleaned up alone (as `remesh.remesh` does). Stats
-    as `remesh.remesh` gives them, the kernel's figures measured before the move."""
+    kernel failed or is dropped, `moved` cleaned up alone (as `isotropic.remesh` does). Stats
+    as `isotropic.remesh` gives them, the kernel's figures measured before the move."""
     config, stats = ahead.config, dict(ahead.stats)
     # The finish's own wait: the pieces are joined in `in_background`, so this holds the join
-    # only where the kernel ended late (before the twenty-seventh session it always did).
+    # only where the kernel ended late.
     waited_from = time.perf_counter()
     result, warning = ahead.wait()
     stats["kernel_wait_s"] = time.perf_counter() - waited_from

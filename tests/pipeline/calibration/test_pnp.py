@@ -22,9 +22,9 @@ def _project(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
 @settings(max_examples=40, deadline=None)
 @given(st.floats(-0.9, 0.9), st.floats(-0.9, 0.9), st.floats(-np.pi, np.pi),
        st.floats(-0.5, 0.3), st.floats(-0.4, 0.3), st.floats(0.8, 3.5))
-@example(0.0, 0.0, -np.pi, 0.0, 0.3, 1.0)  # upside down: OpenCV's IPPE alone got this wrong
+@example(0.0, 0.0, -np.pi, 0.0, 0.3, 1.0)  # upside down: OpenCV's IPPE alone gets this wrong
 @example(0.0, 0.0, np.pi, -0.5, -0.4, 3.5)
-@example(0.0, 0.005, np.pi, -0.5, 0.0, 3.5)  # turned and slightly tilted: LM stopped early
+@example(0.0, 0.005, np.pi, -0.5, 0.0, 3.5)  # turned, slightly tilted: OpenCV's LM stops early
 def test_pnp_recovers_a_known_pose(ax: float, ay: float, az: float, x: float, y: float,
                                    z: float) -> None:
     truth = from_rotvec(np.array([ax, ay, az]), np.array([x, y, z]))

@@ -8,9 +8,9 @@ from pipeline.enhance.presmooth.scale_selection import (
     _product,
     _step_polynomials,
     _twicing_polynomial,
-    field_ops,
     twicing_candidates,
 )
+from pipeline.enhance.presmooth.scale_selection_numpy import field_ops
 from pipeline.enhance.training.data import noisy_along_normals
 from pipeline.geometry.boundary import across_boundary, boundary_half_edges, boundary_offset
 from pipeline.geometry.mesh import TriangleMesh
