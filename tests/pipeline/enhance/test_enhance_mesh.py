@@ -207,7 +207,7 @@ def test_the_accelerator_path_remeshed_ahead_gives_the_cpu_paths_mesh(
         noisy_sphere: tuple[TriangleMesh, TriangleMesh], monkeypatch: pytest.MonkeyPatch) -> None:
     """With the light remesh started ahead (the default on a GPU), the accelerator path also
     carries the kernel's result onto the moved mesh and measures its angles there
-    (`carry_torch`): forced onto the CPU, the same faces and vertices as the host's."""
+    (`transfer_torch`): forced onto the CPU, the same faces and vertices as the host's."""
     import pipeline.enhance.device as device
 
     _, noisy = noisy_sphere

@@ -9,14 +9,14 @@ import pytest
 
 from pipeline.enhance.config import EnhanceConfig
 from pipeline.enhance.enhancement import enhance_mesh
-from pipeline.enhance.networks import load_networks, networks_key, uses_gain, uses_selector
+from pipeline.enhance.networks import load_networks, networks_key, uses_gain
 from pipeline.enhance.weights import shipped_bytes
 from pipeline.geometry.mesh import TriangleMesh
 
 SMALL = EnhanceConfig(resolution=48, remesh_iterations=0, min_noise_ratio=0.0, device="cpu")
 
 
-@pytest.mark.parametrize("method", ["ldm", "regressor", "selector"])
+@pytest.mark.parametrize("method", ["ldm", "regressor", "classical"])
 def test_kept_networks_give_the_loaded_networks_mesh(
         noisy_sphere: tuple[TriangleMesh, TriangleMesh], method: str) -> None:
     """The same mesh bit for bit, for each of two meshes the networks are kept over, and for
@@ -36,7 +36,7 @@ def test_networks_for_another_config_are_refused(
         noisy_sphere: tuple[TriangleMesh, TriangleMesh]) -> None:
     _, noisy = noisy_sphere
     networks = load_networks(SMALL)
-    for other in (replace(SMALL, method="regressor"), replace(SMALL, learned_gain=False),
+    for other in (replace(SMALL, method="regressor"), replace(SMALL, method="classical"),
                   replace(SMALL, weights={"ldm_gain": shipped_bytes("regressor_gain")})):
         assert not networks.fits(other)
         with pytest.raises(ValueError, match="networks: loaded for another"):
@@ -47,11 +47,10 @@ def test_networks_for_another_config_are_refused(
 def test_what_each_method_loads() -> None:
     ldm = load_networks(SMALL)
     assert ldm.enhancer is not None and ldm.selector is not None and ldm.gain is not None
-    plain = load_networks(replace(SMALL, presmooth_learned=False, learned_gain=False))
-    assert plain.selector is None and plain.gain is None
-    taubin = replace(SMALL, method="taubin")
-    assert not uses_selector(taubin) and not uses_gain(taubin)
-    assert load_networks(taubin).enhancer is None
+    classical = replace(SMALL, method="classical")
+    assert not uses_gain(classical)
+    plain = load_networks(classical)
+    assert plain.enhancer is None and plain.selector is not None and plain.gain is None
     assert networks_key(SMALL) != networks_key(replace(SMALL, method="regressor"))
 
 

@@ -18,7 +18,6 @@ from pipeline.enhance.self_check import (
     scored,
     simulated_copy,
 )
-from pipeline.enhance.update.normal_filter import normal_filter
 from pipeline.geometry.mesh import TriangleMesh, vertex_normals
 from tests.pipeline.enhance.conftest import sphere
 
@@ -85,16 +84,6 @@ def _harmful_regressor() -> bytes:
     return regressor_to_bytes(model)
 
 
-def _classical(noisy: TriangleMesh, config: EnhanceConfig) -> TriangleMesh:
-    """The selector's base, then the normal filter, in the spatial order the stages use (the
-    selector's blend differs by up to 6e-5 m in another order)."""
-    from pipeline.geometry.order import reordered, restored, spatial_order
-
-    order = spatial_order(noisy)
-    base = enhance_mesh(reordered(noisy, order), replace(config, method="selector"))
-    return restored(normal_filter(base, config.normal_filter), order)
-
-
 @pytest.mark.parametrize("harmful", [True, False], ids=["harmful", "shipped"])
 def test_the_self_check_keeps_the_networks_update_only_where_it_wins_on_the_copy(
         noisy_sphere: tuple[TriangleMesh, TriangleMesh], harmful: bool) -> None:
@@ -116,9 +105,9 @@ def test_the_self_check_keeps_the_networks_update_only_where_it_wins_on_the_copy
     check = checks[0]
     assert 0 < check.without_networks_rms_m < 0.01 and 0 < check.with_networks_rms_m < 0.05
     unchecked = enhance_mesh(noisy, config)
-    classical = _classical(noisy, config)
+    classical = enhance_mesh(noisy, replace(config, method="classical"))
     chosen = unchecked if check.networks_help else classical
-    assert np.allclose(result.vertices_m, chosen.vertices_m, atol=1e-9)
+    np.testing.assert_array_equal(result.vertices_m, chosen.vertices_m)
     if harmful:
         assert not check.networks_help
         # It was right to: the harmful update is further from the truth.
@@ -131,8 +120,8 @@ def test_without_the_self_check_nothing_is_told(
     checks: list[SelfCheck] = []
     enhance_mesh(noisy, EnhanceConfig(method="regressor", resolution=32, remesh_iterations=0,
                                       min_noise_ratio=0.0), on_check=checks.append)
-    enhance_mesh(noisy, EnhanceConfig(method="laplacian", self_check=True),
-                 on_check=checks.append)
+    enhance_mesh(noisy, EnhanceConfig(method="classical", self_check=True,
+                                      min_noise_ratio=0.0), on_check=checks.append)
     assert checks == []
 
 
