@@ -1,11 +1,11 @@
-"""Mesh-enhancement benchmark (issue 4's protocol); prints JSON.
+"""Mesh-enhancement benchmark (the issue's protocol, on the bunny); prints JSON.
 
-The bunny scaled to 1 m height, remeshed to ~5 mm edges, every vertex moved along its normal by
-uniform noise in ±1 cm (seeded). Each method's result is scored with CloudCompare-style C2M
-(signed mean / std / RMS of result vertices to the truth), the reverse distance, and the mean
-normal angle error, with its time per mesh. Classical smoothers are swept over iteration counts
-and reported at their best (lowest C2M RMS). Depth-level figures come from held-apart validation
-renders (meshes never trained on). Targets are checked and reported as they come out.
+The protocol (`enhance_protocol.py`): the bunny scaled to 1 m height, remeshed to ~5 mm edges,
+every vertex moved along its normal by uniform noise in ±1 cm (seeded). Each method's result
+is scored with CloudCompare-style C2M, the reverse distance and the mean normal angle error,
+with its time per mesh. The classical smoothers are swept over iteration counts and reported
+at their best. Depth-level figures come from held-apart validation renders (meshes never
+trained on). Targets are checked and reported as they come out.
 
     .venv/bin/python benchmarks/enhance.py [--weights DIR] [--quick] > enhance.json
 
@@ -32,31 +32,33 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from enhance_protocol import (  # noqa: E402
+    MESHES,
+    NO_BOUNDED_NOISE,
+    NO_NORMAL_FILTER,
+    SWEEPS,
+    adaptive_twicing,
+    best_normal_filtering,
+    best_of_sweep,
+    bunny_protocol,
+    classical,
+    presmoothing,
+    run_method,
+    score,
+    targets,
+    twicing_bounded_noise,
+    weights_folder,
+)
 
 from pipeline.enhance import EnhanceConfig, enhance_mesh  # noqa: E402
-from pipeline.enhance.enhancement import (  # noqa: E402
-    CHECKED_STAGE_PROGRESS,
-    STAGE_PROGRESS,
-    light_remesh,
-    light_remesh_config,
-    remeshes_ahead,
-)
-from pipeline.enhance.metrics import c2m_summary, normal_error_deg  # noqa: E402
+from pipeline.enhance.enhancement import CHECKED_STAGE_PROGRESS, STAGE_PROGRESS  # noqa: E402
 from pipeline.enhance.networks import load_networks  # noqa: E402
-from pipeline.enhance.presmooth.midrange import BoundedNoiseConfig  # noqa: E402
-from pipeline.enhance.training.data import DataConfig, noisy_along_normals  # noqa: E402
-from pipeline.enhance.update.normal_filter import NormalFilterConfig, normal_filter  # noqa: E402
-from pipeline.geometry.mesh import TriangleMesh  # noqa: E402
-from pipeline.reconstruct.remesh.speculative import finish_remesh_ahead, start_remesh_ahead  # noqa: E402
+from pipeline.enhance.training.data import DataConfig  # noqa: E402
 
-SWEEPS = {
-    "laplacian": range(1, 31),
-    "taubin": range(1, 301, 4),
-    "bilateral": range(1, 31),
-    "twicing": range(2, 81, 2),
-}
+__all__ = ["bunny_protocol", "score"]  # what other benchmarks import from here
+
 VERTEX_NOISE_ONLY = DataConfig(
     poses_per_mesh=2, edge_fraction=(0.005, 0.005), noise_fraction=(0.01, 0.01),
     light_noise_probability=0.0, kinect_probability=0.0, hole_probability=0.0,
@@ -64,155 +66,6 @@ VERTEX_NOISE_ONLY = DataConfig(
 )
 """The benchmark's degradation alone (its noise and edge length relative to the mesh, no
 sensor noise, holes, resampling or colour), for depth-level figures on held-apart meshes."""
-ISSUE_CLASSICAL = ("taubin", "laplacian", "bilateral")
-"""The classical methods issue 4's RMS target is set against; twicing is reported beside them."""
-
-
-NO_NORMAL_FILTER = NormalFilterConfig(normal_iterations=0)
-NO_BOUNDED_NOISE = BoundedNoiseConfig(rings=0)
-
-NORMAL_FILTER_GRID = ((10, 30, 2.0, 2.0), (10, 40, 1.5, 2.0), (10, 40, 1.0, 2.0),
-                      (15, 40, 1.5, 2.0), (20, 40, 1.0, 2.0), (20, 40, 0.7, 2.0))
-"""Bilateral normal filtering applied to the noisy mesh alone (normal rounds, vertex rounds,
-range, spatial edges): a classical method the issue does not name, stronger here than the
-three it does. The six best of 19 settings tried on the bunny (twelfth session; 1.068-1.12 mm,
-the filter's own setting for the update's output 5.73 mm on raw noise)."""
-
-
-MESH_SUFFIXES = (".obj", ".ply", ".off", ".stl", ".glb", ".gltf")
-"""The mesh files a protocol mesh may come as (what `read_mesh` reads)."""
-
-
-def protocol_mesh_file(meshes: Path, name: str) -> Path:
-    """The file of protocol mesh `name`: a path to a mesh file, or the file of that stem in
-    the folder `meshes` with one of `MESH_SUFFIXES`. ValueError naming both where none is."""
-    if Path(name).is_file():
-        return Path(name)
-    for suffix in MESH_SUFFIXES:
-        if (meshes / f"{name}{suffix}").is_file():
-            return meshes / f"{name}{suffix}"
-    raise ValueError(f"mesh {name!r}: no such file, nor {name}{{{','.join(MESH_SUFFIXES)}}} "
-                     f"in {meshes}")
-
-
-def protocol_mesh_names(meshes: Path) -> list[str]:
-    """The stems of the folder's mesh files (`MESH_SUFFIXES`), sorted."""
-    return sorted({p.stem for p in meshes.iterdir() if p.suffix.lower() in MESH_SUFFIXES})
-
-
-def bunny_protocol(meshes: Path, seed: int, edge_m: float = 0.005, name: str = "stanford-bunny",
-                   split_boundary: bool = True):
-    """(ground truth, noisy) meshes of the protocol (the bunny, or another mesh by `name`; one
-    the remesher refuses as non-manifold is repaired first, as the pipeline's remesh does).
-
-    Boundary edges are cut to about `edge_m` first (`split_boundary_edges`), as the
-    pipeline's remesh does: the kernel holds the boundary and never splits them, which left
-    hubs of up to 514 neighbours on beetle, 135 on the teapot and bunny boundary edges of up
-    to 24 mm; `split_boundary` False gives that earlier protocol (up to the tenth session).
-
-    The remesh (gpytoolbox's `remesh_botsch`, 10 rounds, projected) runs in a child
-    (`remesh_kernel.run_isolated`, the same arrays as in this process): on a Möbius strip it
-    aborts its process, which here is a ValueError for that mesh alone."""
-    from pipeline.geometry.repair import repair
-    from pipeline.io.mesh_io import read_mesh
-    from pipeline.reconstruct.remesh.boundary_split import split_boundary_edges
-    from pipeline.reconstruct.remesh.kernel import start_isolated
-
-    m = read_mesh(protocol_mesh_file(meshes, name))
-    v = m.vertices_m
-    v = (v - 0.5 * (v.min(0) + v.max(0))) / np.ptp(v[:, 1])
-    f = m.faces.astype(np.int32)
-
-    def remeshed(v, f):
-        if split_boundary:
-            v, f = split_boundary_edges(v, f, edge_m)
-        result, why = start_isolated(v, f, edge_m, 10, 1800.0, split=False)()
-        if result is None:
-            raise ValueError(f"{name}: the protocol's remesh: {why}")
-        return result.vertices_m, result.faces
-
-    try:
-        vr, fr = remeshed(v, f)
-    except ValueError:  # non-manifold input (beetle, suzanne): the pipeline's repair first
-        v, f64, _ = repair(v, f)
-        vr, fr = remeshed(v, f64)
-    truth = TriangleMesh(np.asarray(vr, np.float64), np.asarray(fr, np.int32))
-    noisy = noisy_along_normals(truth, 0.01, np.random.default_rng(seed))
-    return truth, noisy
-
-
-def score(result: TriangleMesh, truth: TriangleMesh, seconds: float) -> dict:
-    out = c2m_summary(result, truth)
-    out["normal_error_deg"] = normal_error_deg(result, truth)
-    out["seconds"] = seconds
-    return out
-
-
-def best_normal_filtering(noisy, truth) -> dict:
-    """`NORMAL_FILTER_GRID`'s best setting on the noisy mesh, scored and timed, with the rest."""
-    runs = []
-    for setting in NORMAL_FILTER_GRID:
-        t = time.perf_counter()
-        result = normal_filter(noisy, NormalFilterConfig(*setting))
-        runs.append(score(result, truth, time.perf_counter() - t) | {"setting": setting})
-    best = min(runs, key=lambda r: r["c2m_rms_mm"])
-    return best | {"rms_by_setting_mm": [[r["setting"], r["c2m_rms_mm"]] for r in runs]}
-
-
-def selector_same_ending(noisy, truth, base: EnhanceConfig) -> dict:
-    """The selector's pre-smoothing ended as the networks' update is (the normal filter, then
-    the light remesh) with no network between: what the networks add to the rest."""
-    t = time.perf_counter()
-    selected = enhance_mesh(noisy, replace(base, method="selector"))
-    # As in the networks' path: on a GPU the light remesh starts on the mesh the normal
-    # filter moves (`remesh_ahead`), on the CPU it remeshes the moved mesh.
-    ahead = (start_remesh_ahead(selected, light_remesh_config(selected, base.remesh_iterations))
-             if base.remesh_iterations > 0 and remeshes_ahead(base) else None)
-    result = normal_filter(selected, base.normal_filter)
-    if ahead is not None:
-        result = finish_remesh_ahead(ahead, result)[0]
-    elif base.remesh_iterations > 0:
-        result = light_remesh(result, base.remesh_iterations)
-    return score(result, truth, time.perf_counter() - t)
-
-
-def twicing_bounded_noise(noisy, truth, iterations: int) -> dict:
-    """Twicing at `iterations` ended by the bounded-noise refinement: the same trick as the
-    enhance stage's pre-smoothing on a classical smoother, with no trained part."""
-    from pipeline.enhance.presmooth.midrange import bounded_noise_refine
-    from pipeline.geometry.smoothing import twicing_smooth
-
-    t = time.perf_counter()
-    result = bounded_noise_refine(noisy, twicing_smooth(noisy, iterations), BoundedNoiseConfig())
-    return score(result, truth, time.perf_counter() - t) | {"iterations": iterations}
-
-
-def run_method(noisy, truth, config: EnhanceConfig) -> dict:
-    t = time.perf_counter()
-    result = enhance_mesh(noisy, config)
-    return score(result, truth, time.perf_counter() - t)
-
-
-def best_of_sweep(noisy, truth, method: str, counts) -> dict:
-    """Scores every count (iterating once per count where the smoother is a repeated step,
-    from the noisy mesh for twicing, which is not); returns the best (lowest RMS) count, timed
-    from scratch, with the whole curve."""
-    from pipeline.enhance.metrics import signed_c2m
-
-    curve = {}
-    mesh, done = noisy, 0
-    for n in sorted(counts):
-        if method == "twicing":
-            mesh, done = noisy, 0
-        mesh = enhance_mesh(mesh, EnhanceConfig(method=method, iterations=n - done))
-        done = n
-        s = signed_c2m(mesh.vertices_m, truth)
-        curve[n] = float(np.sqrt(np.mean(s**2)) * 1e3)
-    best = min(curve, key=lambda k: curve[k])
-    out = run_method(noisy, truth, EnhanceConfig(method=method, iterations=best))
-    out["iterations"] = best
-    out["rms_curve_mm"] = {str(k): round(v, 4) for k, v in curve.items()}
-    return out
 
 
 def depth_level(weights: dict | None, views: int, seed: int, meshes: Path) -> dict:
@@ -314,6 +167,7 @@ def _recording_remesh_stats(stats: dict) -> None:
     """The light remesh's stats (`remesh.remesh`'s, or `finish_remesh_ahead`'s on the remesh
     started ahead) of the next `enhance_mesh`, with the seconds of that call, put in
     `stats`: the kernel's wait, the clean-up's counts. The calls themselves are unchanged."""
+    import pipeline.enhance.clean.light_remesh as light
     import pipeline.enhance.enhancement as enhancement
 
     def recorded(call):
@@ -324,7 +178,7 @@ def _recording_remesh_stats(stats: dict) -> None:
             return out
         return wrapper
 
-    enhancement.remesh = recorded(enhancement.remesh)
+    light.remesh = recorded(light.remesh)
     enhancement.finish_remesh_ahead = recorded(enhancement.finish_remesh_ahead)
 
 
@@ -345,7 +199,7 @@ def perf_child(args) -> None:
         pipeline.reconstruct.remesh.isotropic.MIN_PIECE_FACES = args.min_piece_faces
     truth, noisy = bunny_protocol(Path(args.meshes), args.seed, 1e-3 * args.edge_mm,
                                   name=args.mesh)
-    weights = _weights(args.weights)
+    weights = weights_folder(args.weights)
     cfg = EnhanceConfig(
         method="ldm", views=args.views, resolution=args.resolution, steps=args.steps,
         remesh_iterations=args.remesh_iterations, device=args.device, weights=weights,
@@ -404,15 +258,9 @@ def fresh_process_timing(args, remesh_iterations: int) -> dict:
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
-def _weights(folder: str | None) -> dict | None:
-    if not folder:
-        return None
-    return {p.stem: p.read_bytes() for p in Path(folder).glob("*.safetensors")}
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--meshes", default=str(ROOT.parent / "shared" / "data" / "meshes"))
+    ap.add_argument("--meshes", default=str(MESHES))
     ap.add_argument("--weights", default=None, help="folder of .safetensors (default: shipped)")
     ap.add_argument("--mesh", default="stanford-bunny",
                     help="protocol mesh: a name in --meshes or a mesh file (default: the bunny)")
@@ -451,7 +299,7 @@ def main() -> None:
     import torch
 
     torch.set_num_threads(max(1, torch.get_num_threads()))
-    weights = _weights(args.weights)
+    weights = weights_folder(args.weights)
     meshes = Path(args.meshes)
     truth, noisy = bunny_protocol(meshes, args.seed, 1e-3 * args.edge_mm, name=args.mesh)
     report: dict = {
@@ -474,31 +322,21 @@ def main() -> None:
     for name, counts in SWEEPS.items():
         methods[name] = best_of_sweep(noisy, truth, name, counts[::3] if args.quick else counts)
     base = EnhanceConfig(views=args.views, resolution=args.resolution, weights=weights)
-    # Twicing with its count chosen per vertex, the networks' pre-smoothing: no sweep.
-    methods["adaptive_twicing"] = run_method(noisy, truth, EnhanceConfig(method="adaptive"))
-    # The trained selector's blend of twicings alone: the networks' pre-smoothing.
-    methods["selector"] = run_method(noisy, truth, replace(base, method="selector"))
-    methods["selector_same_ending"] = selector_same_ending(noisy, truth, base)
-    # The pre-smoothing before the bounded-noise refinement (fifteenth session and before),
-    # and the refinement on plain twicing at its best count.
-    methods["selector_without_bounded_noise"] = run_method(
-        noisy, truth, replace(base, method="selector", bounded_noise=NO_BOUNDED_NOISE))
+    methods["adaptive_twicing"] = adaptive_twicing(noisy, truth)
+    # The pre-smoothing alone, with and without its midrange estimator; the same on plain
+    # twicing at its best count; the classical method (the pre-smoothing and the ending).
+    methods["selector"] = presmoothing(noisy, truth, base, base.bounded_noise)
+    methods["selector_without_bounded_noise"] = presmoothing(noisy, truth, base,
+                                                             NO_BOUNDED_NOISE)
     methods["twicing_bounded_noise"] = twicing_bounded_noise(
         noisy, truth, methods["twicing"]["iterations"])
-    methods["views_raw_depth"] = run_method(noisy, truth, replace(base, method="views"))
+    methods["classical"] = classical(noisy, truth, base)
     methods["bilateral_normal_filtering"] = best_normal_filtering(noisy, truth)
     for label, cfg in (
         ("regressor", replace(base, method="regressor")),
         ("ldm_1_step", replace(base, method="ldm", steps=1)),
         ("ldm_4_steps", replace(base, method="ldm", steps=4)),
         ("ldm_10_steps", replace(base, method="ldm", steps=10)),
-        # One fixed share of the correction for every vertex instead of the learned gains.
-        ("ldm_4_steps_fixed_gain", replace(base, method="ldm", steps=4, learned_gain=False)),
-        ("regressor_fixed_gain", replace(base, method="regressor", learned_gain=False)),
-        # Inference-time variants of the same model: averaging more estimates per vertex.
-        ("ldm_4_steps_ensemble_4", replace(base, method="ldm", steps=4, ensemble=4)),
-        # The same self-ensemble for the regressor: the LDM's with it is judged against this.
-        ("regressor_ensemble_4", replace(base, method="regressor", ensemble=4)),
         ("ldm_1_step_14_views", replace(base, method="ldm", steps=1, views=14)),
         # Without the light remesh, which is most of the time on a CPU and all of it on a GPU.
         ("ldm_4_steps_no_remesh", replace(base, method="ldm", steps=4, remesh_iterations=0)),
@@ -508,7 +346,7 @@ def main() -> None:
                                                  normal_filter=NO_NORMAL_FILTER)),
         ("regressor_no_normal_filter", replace(base, method="regressor",
                                                normal_filter=NO_NORMAL_FILTER)),
-        # The pipeline as it was before the bounded-noise refinement.
+        # Without the midrange estimator, as on noise with tails.
         ("ldm_4_steps_without_bounded_noise", replace(base, method="ldm", steps=4,
                                                       bounded_noise=NO_BOUNDED_NOISE)),
         ("regressor_without_bounded_noise", replace(base, method="regressor",
@@ -526,82 +364,6 @@ def main() -> None:
     report["load_average_at_end"] = os.getloadavg()
     report["targets"] = targets(methods, report["ldm_4_steps_fresh_process"])
     print(json.dumps(report, indent=1))
-
-
-def targets(methods: dict, perf: dict) -> dict:
-    """The issue's targets, evaluated on the LDM at 4 steps (and its best step count)."""
-    classical = {k: methods[k] for k in ISSUE_CLASSICAL}
-    best_name = min(classical, key=lambda k: classical[k]["c2m_rms_mm"])
-    best = classical[best_name]
-    ldm_runs = {k: v for k, v in methods.items() if k.startswith("ldm") and "c2m_rms_mm" in v}
-    out: dict = {"best_classical": best_name, "best_classical_rms_mm": best["c2m_rms_mm"]}
-    if not ldm_runs:
-        out["ldm"] = "no LDM result"
-        return out
-    ldm_best = min(ldm_runs, key=lambda k: ldm_runs[k]["c2m_rms_mm"])
-    for label in ("ldm_4_steps", ldm_best):
-        r = ldm_runs.get(label)
-        if r is None:
-            continue
-        cut = 1.0 - r["c2m_std_mm"] / methods["noisy"]["c2m_std_mm"]
-        rms_gain = 1.0 - r["c2m_rms_mm"] / best["c2m_rms_mm"]
-        out[label] = {
-            "std_cut": round(cut, 4),
-            "std_cut_ge_80pct": cut >= 0.80,
-            "abs_mean_le_0.1mm": abs(r["c2m_mean_mm"]) <= 0.1,
-            "rms_gain_over_best_classical": round(rms_gain, 4),
-            "rms_ge_20pct_below_best_classical": rms_gain >= 0.20,
-            "normal_error_below_best_classical": r["normal_error_deg"] < best["normal_error_deg"],
-            "reverse_no_worse_than_best_classical": r["reverse_rms_mm"] <= best["reverse_rms_mm"],
-            "beats_regressor": "c2m_rms_mm" in methods.get("regressor", {})
-            and r["c2m_rms_mm"] < methods["regressor"]["c2m_rms_mm"],
-            # Within 1 %: a win by less is no win.
-            "level_with_regressor": "c2m_rms_mm" in methods.get("regressor", {})
-            and abs(r["c2m_rms_mm"] / methods["regressor"]["c2m_rms_mm"] - 1.0) < 0.01,
-            # Twicing alone (at its best count; adaptive; the selector's blend, the networks'
-            # own pre-smoothing): what the networks add.
-            "rms_gain_over_twicing": round(
-                1.0 - r["c2m_rms_mm"] / methods["twicing"]["c2m_rms_mm"], 4
-            ),
-            "rms_gain_over_adaptive_twicing": round(
-                1.0 - r["c2m_rms_mm"] / methods["adaptive_twicing"]["c2m_rms_mm"], 4
-            ),
-            "rms_gain_over_selector": round(
-                1.0 - r["c2m_rms_mm"] / methods["selector"]["c2m_rms_mm"], 4
-            ),
-        }
-        if "selector_same_ending" in methods:
-            # The networks alone: the same pre-smoothing and the same ending without them.
-            out[label]["rms_gain_over_selector_same_ending"] = round(
-                1.0 - r["c2m_rms_mm"] / methods["selector_same_ending"]["c2m_rms_mm"], 4)
-        if "twicing_bounded_noise" in methods:
-            # The refinement on a classical smoother: what the trained parts add to it.
-            out[label]["rms_gain_over_twicing_bounded_noise"] = round(
-                1.0 - r["c2m_rms_mm"] / methods["twicing_bounded_noise"]["c2m_rms_mm"], 4)
-        if "bilateral_normal_filtering" in methods:
-            # Not among the issue's baselines, and stronger than they are: said beside them.
-            out[label]["rms_gain_over_bilateral_normal_filtering"] = round(
-                1.0 - r["c2m_rms_mm"] / methods["bilateral_normal_filtering"]["c2m_rms_mm"], 4)
-    out["best_ldm"] = ldm_best
-    fast = methods.get("ldm_4_steps_no_remesh", {})
-    fast_regressor = methods.get("regressor_no_remesh", {})
-    if "c2m_rms_mm" in fast and "c2m_rms_mm" in fast_regressor:
-        out["ldm_4_steps_no_remesh"] = {
-            "rms_gain_over_best_classical": round(1.0 - fast["c2m_rms_mm"] / best["c2m_rms_mm"], 4),
-            "rms_ge_20pct_below_best_classical": fast["c2m_rms_mm"] <= 0.8 * best["c2m_rms_mm"],
-            "beats_regressor_no_remesh": fast["c2m_rms_mm"] < fast_regressor["c2m_rms_mm"],
-        }
-    ensembled = methods.get("ldm_4_steps_ensemble_4", {})
-    ensembled_regressor = methods.get("regressor_ensemble_4", {})
-    if "c2m_rms_mm" in ensembled and "c2m_rms_mm" in ensembled_regressor:
-        # Each network with the same four flips: what the plain pair's comparison says, with both
-        # averaging four estimates per view.
-        out["ldm_4_steps_ensemble_4_beats_regressor_ensemble_4"] = (
-            ensembled["c2m_rms_mm"] < ensembled_regressor["c2m_rms_mm"])
-    if "seconds" in perf:
-        out["ldm_4_steps_seconds_le_20"] = perf["seconds"] <= 20.0
-        out["ldm_peak_rss_le_3gb"] = perf["peak_rss_gb"] <= 3.0
-    return out
 
 
 if __name__ == "__main__":

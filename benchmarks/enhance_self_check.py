@@ -4,12 +4,11 @@
         [--method ldm|regressor] [--seed N]
 
 For each mesh (by default every protocol mesh in the folder, the bunny included): the
-classical ending with no network (the selector, the refinement, the normal filter and the
-light remesh: `selector_same_ending`), the networks' result, and the networks' result
-self-checked, with what the check measured on its simulated copy and the time of each. The
-check chose right where it kept the networks on a mesh where they beat the classical ending,
-or the classical ending where they lose to it. `--meshes` takes a folder of .obj, .ply,
-.off, .stl, .glb or .gltf files (`unseen_shapes.py --out DIR` writes one).
+classical method (the pre-smoothing, the normal filter and the light remesh, no network), the
+networks' result, and the networks' result self-checked, with what the check measured on its
+simulated copy and the time of each. The check chose right where it kept the networks on a
+mesh where they beat the classical method, or the classical result where they lose to it.
+`--meshes` takes a folder of .obj, .ply, .off, .stl, .glb or .gltf files.
 """
 
 from __future__ import annotations
@@ -25,12 +24,13 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from enhance import (  # noqa: E402
+from enhance_protocol import (  # noqa: E402
+    MESHES,
     bunny_protocol,
+    classical,
     protocol_mesh_names,
     run_method,
     score,
-    selector_same_ending,
 )
 
 from pipeline.enhance import EnhanceConfig, enhance_mesh  # noqa: E402
@@ -40,22 +40,22 @@ from pipeline.enhance.self_check import SelfCheck  # noqa: E402
 def mesh_row(meshes: Path, name: str, method: str, seed: int = 0) -> dict:
     truth, noisy = bunny_protocol(meshes, seed, name=name)
     config = EnhanceConfig(method=method)
-    classical = selector_same_ending(noisy, truth, config)["c2m_rms_mm"]
+    classical_rms = classical(noisy, truth, config)["c2m_rms_mm"]
     networks = run_method(noisy, truth, config)
     checks: list[SelfCheck] = []
     started = time.perf_counter()
     checked = enhance_mesh(noisy, replace(config, self_check=True), on_check=checks.append)
     checked_score = score(checked, truth, time.perf_counter() - started)
-    help_really = networks["c2m_rms_mm"] < classical
+    help_really = networks["c2m_rms_mm"] < classical_rms
     return {
         "vertices": truth.vertex_count,
-        "classical_ending_rms_mm": round(classical, 4),
+        "classical_rms_mm": round(classical_rms, 4),
         "networks_rms_mm": round(networks["c2m_rms_mm"], 4),
         "self_checked_rms_mm": round(checked_score["c2m_rms_mm"], 4),
         "networks_gain_over_classical_pct": round(
-            100 * (1 - networks["c2m_rms_mm"] / classical), 2),
+            100 * (1 - networks["c2m_rms_mm"] / classical_rms), 2),
         "self_checked_gain_over_classical_pct": round(
-            100 * (1 - checked_score["c2m_rms_mm"] / classical), 2),
+            100 * (1 - checked_score["c2m_rms_mm"] / classical_rms), 2),
         "check": {k: round(v, 4) if isinstance(v, float) else v
                   for k, v in checks[0].as_stats().items()},
         "check_predicted_gain_pct": round(100 * (1 - checks[0].with_networks_rms_m
@@ -69,7 +69,7 @@ def mesh_row(meshes: Path, name: str, method: str, seed: int = 0) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--meshes", default=str(ROOT.parent / "shared" / "data" / "meshes"))
+    ap.add_argument("--meshes", default=str(MESHES))
     ap.add_argument("--mesh", action="append", help="a name in --meshes or a mesh file")
     ap.add_argument("--method", default="ldm", choices=("ldm", "regressor"))
     ap.add_argument("--seed", type=int, default=0, help="the protocol's noise seed")

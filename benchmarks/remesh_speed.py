@@ -47,8 +47,8 @@ from pipeline.reconstruct.remesh.speculative import (  # noqa: E402
 
 
 def light_remesh_config(mesh: TriangleMesh, processes: int | None) -> RemeshConfig:
-    """`enhancement.light_remesh`'s settings, with `processes` kernel children."""
-    from pipeline.enhance.enhancement import (
+    """`light_remesh`'s settings, with `processes` kernel children."""
+    from pipeline.enhance.clean.light_remesh import (
         LIGHT_REMESH_MAX_ADDED_OUTSIDE,
         LIGHT_REMESH_MAX_LOST_EDGES,
     )

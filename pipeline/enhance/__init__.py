@@ -1,5 +1,6 @@
-"""LDM mesh enhancement: depth views of a mesh are enhanced and the vertices
-follow them. The only package that imports torch (lazily, inside functions)."""
+"""Mesh enhancement: a mesh is pre-smoothed, a depth network (LDM or regressor) corrects its
+depth views and the vertices follow them; `classical` runs the same without the network. The
+only package that imports torch."""
 
 from pipeline.enhance.config import EnhanceConfig
 from pipeline.enhance.enhancement import enhance_mesh

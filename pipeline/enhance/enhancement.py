@@ -58,7 +58,7 @@ CHECKED_STAGE_PROGRESS = {"render": 0.02, "presmooth": 0.17, "check": 0.65, "net
                           "update": 0.76, "remesh": 1.0}
 """`STAGE_PROGRESS` with the self-check (`EnhanceConfig.self_check`). Where the check keeps
 the classical result, "remesh" follows "check"."""
-CLASSICAL_STAGE_PROGRESS = {"presmooth": 0.38, "update": 0.42, "remesh": 1.0}
+CLASSICAL_STAGE_PROGRESS = {"presmooth": 0.5, "update": 0.7, "remesh": 1.0}
 """`STAGE_PROGRESS` of the classical method, which neither renders nor runs a depth network."""
 
 

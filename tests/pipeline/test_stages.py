@@ -120,7 +120,6 @@ def test_the_enhance_stage_asks_for_its_networks_only_where_it_enhances(
     """A worker's kept networks (loading them costs a fresh worker seconds) are asked for only
     where the mesh is noisy enough to enhance; a clean mesh comes back as it was. The noise
     is measured once a mesh, by the stage, not again by `enhance_mesh`'s gate."""
-    import pipeline.enhance.enhancement as enhancement_module
     import pipeline.enhance.noise_level as noise_level
     from pipeline.enhance import EnhanceConfig
     from pipeline.enhance.networks import EnhanceNetworks, load_networks
@@ -142,7 +141,6 @@ def test_the_enhance_stage_asks_for_its_networks_only_where_it_enhances(
         return measure(*args, **kwargs)
 
     monkeypatch.setattr(noise_level, "noise_to_edge_ratio", counted)
-    monkeypatch.setattr(enhancement_module, "noise_to_edge_ratio", counted)
     clean = whole_run[0]
     noisy = noisy_along_normals(clean, 0.01, np.random.default_rng(0))
     with open_capture(sphere_capture) as capture:

@@ -74,8 +74,7 @@ def test_the_api_offers_every_config_section() -> None:
 
 def test_a_worker_keeps_its_enhance_networks_between_jobs(tmp_path) -> None:
     """The same networks for every config they fit (another sampling setting too); a
-    smoother, which runs none, leaves them kept; a config that needs others loads them in
-    their place."""
+    config that needs others loads them in their place."""
     from pipeline.enhance.config import EnhanceConfig
     from workers.context import WorkerContext
     from workers.settings import Settings
@@ -85,7 +84,5 @@ def test_a_worker_keeps_its_enhance_networks_between_jobs(tmp_path) -> None:
     first = ctx.enhance_networks(config)
     assert ctx.enhance_networks(config) is first
     assert ctx.enhance_networks(dataclasses.replace(config, resolution=128)) is first
-    smoother = ctx.enhance_networks(dataclasses.replace(config, method="taubin"))
-    assert smoother.enhancer is None and ctx.networks is first
-    other = ctx.enhance_networks(dataclasses.replace(config, learned_gain=False))
+    other = ctx.enhance_networks(dataclasses.replace(config, method="classical"))
     assert other is not first and other.gain is None and ctx.networks is other

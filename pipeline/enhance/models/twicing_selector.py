@@ -56,9 +56,9 @@ class SelectorEnsemble(nn.Module):
     def __init__(self, members: Sequence[TwicingSelector]) -> None:
         super().__init__()
         if not members:
-            raise ValueError("selector-ensemble: no members")
+            raise ValueError("--selector-ensemble: no members")
         if len({m.config.blend for m in members}) != 1:
-            raise ValueError("selector-ensemble: its members weigh different candidates")
+            raise ValueError("--selector-ensemble: its members weigh different candidates")
         self.members = nn.ModuleList(members)
         self.config = members[0].config
 

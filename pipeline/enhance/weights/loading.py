@@ -182,7 +182,7 @@ def selector_ensemble_to_bytes(selectors: list[bytes], half: bool = False) -> by
 
     members = [load_selector(data) for data in selectors]
     if any(isinstance(m, SelectorEnsemble) for m in members):
-        raise ValueError("selector-ensemble: a member is itself an ensemble")
+        raise ValueError("--selector-ensemble: a member is itself an ensemble")
     meta = {"members": [asdict(m.config) for m in members],
             "member_sha256": [hashlib.sha256(data).hexdigest() for data in selectors]}
     return weights_to_bytes(SelectorEnsemble(members).state_dict(), meta, half)
