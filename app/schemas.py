@@ -132,9 +132,9 @@ class JobCreate(BaseModel):
     remesh: StageSettings | None = Field(default=None, description=_SECTION)
     enhancement: dict[str, bool | int | float | str] | None = Field(
         default=None, description="Enhance stage settings by field name (method: ldm, "
-        "regressor, views, taubin, laplacian, twicing, adaptive, selector, bilateral; views; "
-        "resolution; steps; strength; ensemble; min_noise_ratio; self_check: keep the "
-        "networks' update only where it beats the classical ending on a simulated copy).")
+        "regressor or classical; views; resolution; steps; strength; min_noise_ratio; "
+        "self_check: keep the networks' update only where it beats the classical ending on a "
+        "simulated copy).")
     colorize: StageSettings | None = Field(default=None, description=_SECTION)
     draco_position_bits: int | None = Field(
         default=None, ge=8, le=30, description="Draco position quantisation bits.")

@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.enhance.config import EnhanceConfig
+from pipeline.enhance.config import REMOVED_SETTINGS, EnhanceConfig
 from pipeline.reconstruct.align import AlignConfig
 from pipeline.reconstruct.colorize import ColorizeConfig
 from pipeline.reconstruct.crop import CropConfig
@@ -113,8 +113,11 @@ def replace_section(section: Any, values: Any, name: str) -> Any:
     if not isinstance(values, Mapping):
         raise ValueError(f"{name}: expected an object of settings")
     fields = {f.name: f for f in dataclasses.fields(section)}
+    removed = _REMOVED.get(name, {})
     changes = {}
     for key, value in values.items():
+        if key in removed:
+            raise ValueError(f"{name}.{key}: removed; {removed[key]}")
         if key not in fields:
             raise ValueError(f"{name}.{key}: unknown setting (known: {', '.join(fields)})")
         changes[key] = _coerce(value, getattr(section, key), f"{name}.{key}")
@@ -185,10 +188,14 @@ def config_hash(config: ReconstructConfig) -> str:
     return hashlib.sha256(text.encode()).hexdigest()
 
 
+_REMOVED = {"enhancement": REMOVED_SETTINGS}
+"""{section: {setting: what replaced it}} of settings a job may no longer set."""
+
+
 def settings_kinds() -> dict[str, dict[str, str]]:
     """{section: {setting: kind}} of every job option section (the stage sections and
-    ``calibration``), kind one of bool, int, float, str, list, or fixed (not settable from
-    options). The gateway, which does not import the pipeline, checks job options against a
+    ``calibration``), kind one of bool, int, float, str, list, fixed (not settable from
+    options) or ``removed: <what replaced it>``. The gateway, which does not import the pipeline, checks job options against a
     copy of this (`app/core/stage_settings.json`; a test keeps the two equal)."""
     from pipeline.calibration import CalibrationConfig
 
@@ -196,6 +203,7 @@ def settings_kinds() -> dict[str, dict[str, str]]:
     sections[CALIBRATION_SECTION] = CalibrationConfig()
     return {name: {f.name: _kind(getattr(section, f.name))
                    for f in dataclasses.fields(section)}
+            | {key: f"removed: {why}" for key, why in _REMOVED.get(name, {}).items()}
             for name, section in sorted(sections.items())}
 
 

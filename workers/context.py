@@ -40,12 +40,9 @@ class WorkerContext:
     def enhance_networks(self, config: EnhanceConfig) -> EnhanceNetworks:
         """The networks `config` runs: those kept from the last enhance stage where they
         fit it, else loaded now and kept in their place (one set at a time, so a worker
-        holds one LDM: the old set is let go before the new one loads). A method that runs
-        no network leaves the kept set as it is."""
-        from pipeline.enhance.networks import load_networks, uses_networks
+        holds one LDM: the old set is let go before the new one loads)."""
+        from pipeline.enhance.networks import load_networks
 
-        if not uses_networks(config):
-            return load_networks(config)
         if self.networks is None or not self.networks.fits(config):
             started = time.perf_counter()
             self.networks = None

@@ -19,19 +19,22 @@ _EXPECTED = {"bool": "true or false", "int": "an integer", "float": "a number",
 
 @cache
 def stage_settings() -> dict[str, dict[str, str]]:
-    """{section: {setting: kind}} (kinds: bool, int, float, str, list, fixed)."""
+    """{section: {setting: kind}} (kinds: bool, int, float, str, list, fixed, or
+    ``removed: <what replaced it>``)."""
     return json.loads((Path(__file__).with_name("stage_settings.json")).read_text())
 
 
 def check_settings(section: str, values: dict[str, Any]) -> None:
-    """ValueError naming ``section.setting`` for an unknown setting, one that cannot be set
-    from options, or a value of the wrong kind."""
+    """ValueError naming ``section.setting`` for an unknown or removed setting, one that cannot
+    be set from options, or a value of the wrong kind."""
     known = stage_settings()[section]
     for key, value in values.items():
         kind = known.get(key)
         if kind is None:
-            raise ValueError(f"{section}.{key}: unknown setting (known: "
-                             f"{', '.join(k for k, v in known.items() if v != 'fixed')})")
+            settable = (k for k, v in known.items() if v in _EXPECTED)
+            raise ValueError(f"{section}.{key}: unknown setting (known: {', '.join(settable)})")
+        if kind.startswith("removed: "):
+            raise ValueError(f"{section}.{key}: removed; {kind.removeprefix('removed: ')}")
         if kind == "fixed":
             raise ValueError(f"{section}.{key}: cannot be set from options")
         if not _is_kind(value, kind):

@@ -3,7 +3,7 @@
 # shared/, the bunny too, though training never reads it): fine-tunes the shipped networks
 # with the large config's batch and poses and the shipped weights' recipe (regressor,
 # end-to-end finetune and vertex gains from the shipped weights, the mesh mix, loss mask
-# 0.02), on CUDA, and copies the weights, training.json and MODEL_CARD.md to $OUT/train (the
+# 0.02), on CUDA, and copies the weights and training.json to $OUT/train (the
 # checkpoints stay there: too large to come back). Then, here: `benchmarks/enhance_meshes.py
 # --mesh spot --mesh fandisk --weights DIR` decides whether the new weights replace the
 # shipped ones (validation meshes only; never the bunny).
@@ -33,6 +33,6 @@ $python -c "from app.cli import main; main()" train --config "${CONFIG:-large}" 
   2>&1 | tr '\r' '\n' | grep -v '^\s*$' | tail -60
 status=${PIPESTATUS[0]}
 mkdir -p "$out/train"
-cp "$work"/*.safetensors "$work"/training.json "$work"/MODEL_CARD.md "$out/train/" 2>/dev/null
+cp "$work"/*.safetensors "$work"/training.json "$out/train/" 2>/dev/null
 ls -l "$out/train"
 exit "$status"

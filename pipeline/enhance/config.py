@@ -17,6 +17,22 @@ REPLACED_BY_CLASSICAL = ("taubin", "laplacian", "twicing", "adaptive", "bilatera
 """Method names refused with a pointer to `classical`, the best enhancement without a depth
 network: the classical smoothers, the selector alone and the network-free view update."""
 
+_PRESMOOTHING = ("the pre-smoothing is always the selector's blend of twicings (scale selection) "
+                 "ended by the midrange estimator")
+_GAIN = "the per-vertex gain network sets each vertex's share of the correction"
+REMOVED_SETTINGS = {
+    "ensemble": "each view is corrected once",
+    "iterations": "method 'classical' replaces the smoothers it counted",
+    "presmooth_iterations": _PRESMOOTHING,
+    "presmooth_passes": _PRESMOOTHING,
+    "presmooth_adaptive": _PRESMOOTHING,
+    "presmooth_learned": _PRESMOOTHING,
+    "correction_gain": _GAIN,
+    "learned_gain": _GAIN,
+}
+"""Job settings of the enhancement that no longer exist, each with what takes its place: a job
+that sets one is refused with that line rather than told the setting is unknown."""
+
 
 @dataclass(frozen=True)
 class EnhanceConfig:

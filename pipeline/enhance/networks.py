@@ -17,7 +17,7 @@ if TYPE_CHECKING:
     from pipeline.enhance.config import EnhanceConfig
 
 __all__ = ["NETWORK_METHODS", "EnhanceNetworks", "load_networks", "networks_key",
-           "selector_for", "uses_gain", "uses_networks"]
+           "selector_for", "uses_gain"]
 
 
 @dataclass(frozen=True)
@@ -37,12 +37,6 @@ class EnhanceNetworks:
     def fits(self, config: EnhanceConfig) -> bool:
         """Whether these are the networks `config` would load."""
         return self.key == networks_key(config)
-
-
-def uses_networks(config: EnhanceConfig) -> bool:
-    """Whether `config`'s enhancement runs a network: every method does, the classical one
-    its pre-smoothing's selector."""
-    return True
 
 
 def uses_gain(config: EnhanceConfig) -> bool:

@@ -106,16 +106,6 @@ def adaptive_twicing(mesh: TriangleMesh, config: AdaptiveTwicingConfig) -> Trian
     return mesh.with_vertices(np.stack(results)[choice, np.arange(len(x))])
 
 
-def presmooth(mesh: TriangleMesh, iterations: int, passes: int, adaptive: bool) -> TriangleMesh:
-    """The networks' pre-smoothing: twicing at a fixed count, or `adaptive_twicing` with
-    `iterations` as its pilot's count; 0 iterations leave the mesh as it is."""
-    if adaptive and iterations > 0:
-        return adaptive_twicing(
-            mesh, AdaptiveTwicingConfig(pilot_iterations=iterations, passes=passes)
-        )
-    return twicing_smooth(mesh, iterations, passes)
-
-
 def taubin_smooth(
     mesh: TriangleMesh, iterations: int, lam: float = 0.5, mu: float = -0.53
 ) -> TriangleMesh:

@@ -288,6 +288,8 @@ def test_revoked_key_is_refused(service: Service) -> None:
 
 @pytest.mark.parametrize("section, settings, named", [
     ("enhancement", {"bogus": 1}, "enhancement.bogus: unknown setting (known: "),
+    ("enhancement", {"learned_gain": False},
+     "enhancement.learned_gain: removed; the per-vertex gain network"),
     ("meshing", {"poisson_depth": 7.5}, "meshing.poisson_depth: expected an integer"),
     ("calibration", {"icp": 1}, "calibration.icp: expected true or false"),
 ])

@@ -39,3 +39,26 @@ def test_what_the_gateway_refuses_the_worker_refuses_by_the_same_name(
         check_settings(section, values)
     with pytest.raises(ValueError, match=named.replace(".", r"\.")):
         config_from_options({section: values})
+
+
+@pytest.mark.parametrize("setting, replaced_by", [
+    ("presmooth_adaptive", "scale selection"),
+    ("correction_gain", "gain network"),
+    ("ensemble", "corrected once"),
+    ("iterations", "classical"),
+])
+def test_a_removed_setting_is_refused_naming_what_replaced_it(setting: str,
+                                                               replaced_by: str) -> None:
+    pattern = rf"enhancement\.{setting}: removed; .*{replaced_by}"
+    with pytest.raises(ValueError, match=pattern):
+        check_settings("enhancement", {setting: 1})
+    with pytest.raises(ValueError, match=pattern):
+        config_from_options({"enhancement": {setting: 1}})
+
+
+def test_an_unknown_setting_lists_only_what_can_be_set() -> None:
+    with pytest.raises(ValueError) as refused:
+        check_settings("enhancement", {"bogus": 1})
+    known = str(refused.value).split("known: ")[1]
+    assert "method" in known
+    assert "presmooth_adaptive" not in known and "update" not in known
