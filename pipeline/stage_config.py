@@ -195,8 +195,9 @@ _REMOVED = {"enhancement": REMOVED_SETTINGS}
 def settings_kinds() -> dict[str, dict[str, str]]:
     """{section: {setting: kind}} of every job option section (the stage sections and
     ``calibration``), kind one of bool, int, float, str, list, fixed (not settable from
-    options) or ``removed: <what replaced it>``. The gateway, which does not import the pipeline, checks job options against a
-    copy of this (`app/core/stage_settings.json`; a test keeps the two equal)."""
+    options) or ``removed: <what replaced it>``. The gateway, which does not import the
+    pipeline, checks job options against a copy of this (`app/core/stage_settings.json`; a
+    test keeps the two equal)."""
     from pipeline.calibration import CalibrationConfig
 
     sections = {name: getattr(ReconstructConfig(), name) for name in sorted(_SECTIONS)}
