@@ -1,4 +1,4 @@
-"""Mesh-enhancement benchmark (the issue's protocol, on the bunny); prints JSON.
+"""Mesh-enhancement benchmark (the paper's protocol, on the bunny); prints JSON.
 
 The protocol (`enhance_protocol.py`): the bunny scaled to 1 m height, remeshed to ~5 mm edges,
 every vertex moved along its normal by uniform noise in ±1 cm (seeded). Each method's result

@@ -1,4 +1,4 @@
-"""Issue 4's targets on every other mesh in the folder, under the bunny's protocol; prints JSON.
+"""The enhancement targets on every other mesh in the folder, under the bunny's protocol; prints JSON.
 
     .venv/bin/python benchmarks/enhance_meshes.py [--meshes DIR] [--mesh NAME|FILE ...]
         [--weights DIR]
@@ -126,7 +126,7 @@ ISSUE_CHECKS = (
     "std_cut_ge_80pct", "abs_mean_le_0.1mm", "rms_ge_20pct_below_best_classical",
     "normal_error_below_best_classical", "reverse_no_worse_than_best_classical",
 )
-"""The quality targets of issue 4 (the timing ones are the bunny's, in `enhance.py`)."""
+"""The enhancement's quality targets (the timing ones are the bunny's, in `enhance.py`)."""
 
 
 def main() -> None:

@@ -45,13 +45,13 @@ SWEEPS = {
 }
 """The iteration counts each smoother is swept over; it is reported at its best."""
 ISSUE_CLASSICAL = ("taubin", "laplacian", "bilateral")
-"""The classical methods the issue's RMS target is set against; twicing is reported beside."""
+"""The classical methods the RMS target is set against; twicing is reported beside."""
 NO_NORMAL_FILTER = NormalFilterConfig(normal_iterations=0)
 NO_BOUNDED_NOISE = BoundedNoiseConfig(rings=0)
 NORMAL_FILTER_GRID = ((10, 30, 2.0, 2.0), (10, 40, 1.5, 2.0), (10, 40, 1.0, 2.0),
                       (15, 40, 1.5, 2.0), (20, 40, 1.0, 2.0), (20, 40, 0.7, 2.0))
 """Bilateral normal filtering of the noisy mesh alone (normal rounds, vertex rounds, range,
-spatial edges): a classical method stronger here than the three the issue names; the best
+spatial edges): a classical method stronger here than the three the target names; the best
 settings on the bunny."""
 MESH_SUFFIXES = (".obj", ".ply", ".off", ".stl", ".glb", ".gltf")
 """The mesh files a protocol mesh may come as (what `read_mesh` reads)."""
@@ -213,7 +213,7 @@ def _gain(result: dict, reference: dict) -> float:
 
 
 def targets(methods: dict, perf: dict) -> dict:
-    """The issue's targets, evaluated on the LDM at 4 steps (and its best step count)."""
+    """The enhancement targets, evaluated on the LDM at 4 steps (and its best step count)."""
     issue = {k: methods[k] for k in ISSUE_CLASSICAL}
     best_name = min(issue, key=lambda k: issue[k]["c2m_rms_mm"])
     best = issue[best_name]
@@ -245,7 +245,7 @@ def targets(methods: dict, perf: dict) -> dict:
             and abs(r["c2m_rms_mm"] / regressor["c2m_rms_mm"] - 1.0) < 0.01,
         }
         # What the networks add to the pre-smoothing alone, to the same pipeline without
-        # them, and to the classical methods the issue does not name.
+        # them, and to the classical methods the target does not name.
         for reference in ("twicing", "adaptive_twicing", "selector", "classical",
                           "twicing_bounded_noise", "bilateral_normal_filtering"):
             if "c2m_rms_mm" in methods.get(reference, {}):

@@ -1,4 +1,4 @@
-"""The self-check (`EnhanceConfig.self_check`) under issue 4's protocol; prints JSON.
+"""The self-check (`EnhanceConfig.self_check`) under the paper's protocol; prints JSON.
 
     .venv/bin/python benchmarks/enhance_self_check.py [--meshes DIR] [--mesh NAME|FILE ...]
         [--method ldm|regressor] [--seed N]
