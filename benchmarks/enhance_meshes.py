@@ -1,4 +1,4 @@
-"""The enhancement targets on every other mesh in the folder, under the bunny's protocol; prints JSON.
+"""Enhancement targets on every other mesh in the folder, under the bunny's protocol; prints JSON.
 
     .venv/bin/python benchmarks/enhance_meshes.py [--meshes DIR] [--mesh NAME|FILE ...]
         [--weights DIR]
