@@ -41,5 +41,5 @@ timed tree . --mesh beetle
 timed tree . --profile "$out/prof_bunny.txt"
 python3 "$here/benchmarks/device/summary.py" "$out/ab.jsonl" | tee "$out/summary.json"
 if python3 -c "import pytest, hypothesis" 2>/dev/null; then
-  python3 -m pytest -q -p no:cacheprovider tests/pipeline/enhance -k cuda 2>&1 | tail -5
+  python3 -m pytest -q -p no:cacheprovider tests/pipeline -k cuda 2>&1 | tail -5
 fi

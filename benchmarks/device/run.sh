@@ -22,5 +22,5 @@ python3 benchmarks/remesh_speed.py --meshes .meshes --repeats 1 --pieces 8 \
   2>>"$out/err.txt" | tee "$out/remesh_speed.json"
 # The tests that need CUDA (skipped elsewhere), where the image has pytest.
 if python3 -c "import pytest, hypothesis" 2>/dev/null; then
-  python3 -m pytest -q -p no:cacheprovider tests/pipeline/enhance -k cuda 2>&1 | tail -5
+  python3 -m pytest -q -p no:cacheprovider tests/pipeline -k cuda 2>&1 | tail -5
 fi

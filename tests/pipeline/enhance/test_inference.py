@@ -11,7 +11,7 @@ from pipeline.enhance.inference import run_network
 from pipeline.enhance.models.regressor import RegressorConfig, ResidualUNet
 from pipeline.enhance.render.views import make_views, render_depth, view_directions
 from pipeline.enhance.weights.loading import load_regressor, regressor_to_bytes, weights_to_bytes
-from tests.pipeline.enhance.conftest import sphere
+from tests.pipeline.spheres import sphere
 
 
 @pytest.fixture(scope="module")

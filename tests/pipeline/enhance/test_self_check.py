@@ -19,7 +19,7 @@ from pipeline.enhance.self_check import (
     simulated_copy,
 )
 from pipeline.geometry.mesh import TriangleMesh, vertex_normals
-from tests.pipeline.enhance.conftest import sphere
+from tests.pipeline.spheres import sphere
 
 SPHERE = sphere(resolution=12)
 

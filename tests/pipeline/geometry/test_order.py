@@ -12,7 +12,7 @@ from pipeline.geometry.order import (
     restored,
     spatial_order,
 )
-from tests.pipeline.enhance.test_boundary import grid
+from tests.pipeline.geometry.test_boundary import grid
 
 
 def _random_mesh(seed: int, vertex_count: int, face_count: int) -> TriangleMesh:

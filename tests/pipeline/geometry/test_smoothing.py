@@ -9,7 +9,7 @@ from pipeline.geometry.smoothing import (
     taubin_smooth,
     twicing_smooth,
 )
-from tests.pipeline.enhance.conftest import radial_rms_m, sphere
+from tests.pipeline.spheres import radial_rms_m, sphere
 
 
 def _radial_std(mesh) -> float:

@@ -16,8 +16,8 @@ from pipeline.enhance.presmooth.midrange_numpy import closed_neighbourhoods, nei
 from pipeline.enhance.training.data import noisy_along_normals
 from pipeline.geometry.mesh import TriangleMesh
 from pipeline.geometry.smoothing import twicing_smooth
-from tests.pipeline.enhance.conftest import radial_rms_m, sphere
-from tests.pipeline.enhance.test_boundary import grid
+from tests.pipeline.geometry.test_boundary import grid
+from tests.pipeline.spheres import radial_rms_m, sphere
 
 SEEDS = st.integers(0, 2**31 - 1)
 
@@ -142,7 +142,7 @@ def test_a_negative_ring_count_is_named():
 def test_the_torch_refinement_is_numpys(open_boundary):
     """The torch implementation (`midrange_torch`), run on the CPU, moves the vertices as
     numpy and scipy do, to rounding."""
-    from tests.pipeline.enhance.test_boundary import open_sphere
+    from tests.pipeline.geometry.test_boundary import open_sphere
 
     truth = sphere(0.5, 40)
     if open_boundary:  # the cut sphere without the cap's vertices, which no face uses

@@ -21,7 +21,7 @@ from pipeline.enhance.training.loop import (
     masked_mse,
     slope_weights,
 )
-from tests.pipeline.enhance.conftest import ramp_pairs
+from tests.pipeline.enhance.depth_pairs import ramp_pairs
 
 
 def test_crops_are_flipped_or_transposed_windows_of_one_pair():

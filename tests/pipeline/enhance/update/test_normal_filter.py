@@ -14,8 +14,8 @@ from pipeline.enhance.update.normal_filter import (
 from pipeline.geometry.mesh import TriangleMesh, face_normals, mean_edge_length_m
 from pipeline.geometry.repair import face_areas
 from pipeline.geometry.smoothing import laplacian_smooth
-from tests.pipeline.enhance.conftest import radial_rms_m, sphere
-from tests.pipeline.enhance.test_boundary import grid
+from tests.pipeline.geometry.test_boundary import grid
+from tests.pipeline.spheres import radial_rms_m, sphere
 
 
 def fold(n: int, angle_deg: float, spacing_m: float = 0.01) -> TriangleMesh:
