@@ -99,8 +99,9 @@ class JobCreate(BaseModel):
         default=None, pattern=ID_PATTERN,
         description="Id returned by POST /captures; may be left out of a calibration-only job.")
     enhance: bool = Field(
-        default=False, description="Run the LDM enhancement stage (gpu queue). Off by default: "
-        "the shipped model does not yet improve reconstructions (see the README).")
+        default=False, description="Run the enhancement stage (gpu queue; its method in "
+        "`enhancement.method`). Off by default: it does not yet improve reconstructions "
+        "(see the README).")
     target_edge_length_m: float | None = Field(
         default=None, gt=0.0005, le=0.5, description="Remeshing target edge length, metres.")
     voxel_size_m: float | None = Field(

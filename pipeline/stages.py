@@ -14,7 +14,7 @@ Stages (in order):
   refine    the same keys, only the points of each voxel's chosen camera
   mesh      vertices_m (V, 3), faces (F, 3): Poisson-disk samples, screened Poisson
   remesh    vertices_m, faces: isotropic remeshing with angle criteria
-  enhance   vertices_m moved to LDM-enhanced depth views (only when ``enhance`` is set)
+  enhance   vertices_m moved to the enhanced depth views (only when ``enhance`` is set)
   colorize  vertices_m, faces, vertex_normals, vertex_colors (when the capture has colour)
 Each stage may also write ``stats_<stage>``: a 0-d string array holding JSON figures.
 """

@@ -13,9 +13,12 @@ from pipeline.enhance.self_check import SelfCheck
 PRESMOOTHING = ("removed; the pre-smoothing is always the selector's blend of twicings (scale "
                 "selection) ended by the midrange estimator")
 REMOVED_OPTIONS = {
-    "--views": "removed; the networks read the six axis views they were trained on",
-    "--resolution": "removed; the networks read views of the side they were trained on",
-    "--strength": "removed; the LDM samples at the strength it was fine-tuned with",
+    "--views": "removed; enhance-mesh renders the six axis views the networks were trained on "
+               "(a job's enhancement.views still sets it)",
+    "--resolution": "removed; enhance-mesh renders views of the side the networks were trained "
+                    "on (a job's enhancement.resolution still sets it)",
+    "--strength": "removed; enhance-mesh samples at the strength the LDM was fine-tuned with "
+                  "(a job's enhancement.strength still sets it)",
     "--iterations": "removed; --method classical replaces the smoothers it counted",
     "--presmooth": PRESMOOTHING,
     "--presmooth-passes": PRESMOOTHING,

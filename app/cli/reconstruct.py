@@ -49,8 +49,8 @@ def reconstruct(
         "--ground-truth", help="Ground-truth mesh in world coordinates (e.g. the "
         "ground_truth.ply of `volumesh synth`) for accuracy figures.")] = None,
     enhance: Annotated[bool, typer.Option(
-        "--enhance/--no-enhance", help="LDM enhancement of the remeshed surface. Off by "
-        "default: the shipped model does not yet improve reconstructions (see the README).")
+        "--enhance/--no-enhance", help="Enhancement of the remeshed surface (the LDM). Off by "
+        "default: it does not yet improve reconstructions (see the README).")
         ] = False,
     rig: Annotated[Path | None, typer.Option(
         "--rig", help="rig.json whose world_from_depth poses replace the capture's.")] = None,

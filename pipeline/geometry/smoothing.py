@@ -1,4 +1,5 @@
-"""Classical mesh denoisers (no torch) that run through the same `--method` path as the models."""
+"""Classical mesh denoisers (no torch): the baselines the enhancement is measured against, and
+the mean operator and twicing its pre-smoothing builds on."""
 
 from __future__ import annotations
 
