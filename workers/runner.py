@@ -20,7 +20,7 @@ from functools import partial
 from typing import Any
 
 from workers.artifacts import artifact_keys, load_merged, save_npz
-from workers.captures import capture_path
+from workers.captures import capture_limits, capture_path
 from workers.celery_app import TASK_STAGE, queue_for_stage
 from workers.context import WorkerContext
 from workers.export import export
@@ -111,7 +111,7 @@ def calibrate(ctx: WorkerContext, job: JobView, index: int, count: int) -> bool:
     config = replace_section(CalibrationConfig(), job.options.get(CALIBRATION_SECTION, {}),
                              CALIBRATION_SECTION)
     progress = StageProgress(ctx, job.id, index, count)
-    with open_capture(capture_path(ctx, *found)) as reader:
+    with open_capture(capture_path(ctx, *found), capture_limits(ctx.settings)) as reader:
         world_from_depth, report = find_poses(reader, config, progress=progress)
     ctx.store.save_rig(job.id, rig_to_json(world_from_depth, report),
                        job.options.get("rig_name"), capture_id)
@@ -137,7 +137,8 @@ def _run_stage(ctx: WorkerContext, job: JobView, stages: tuple[str, ...], index:
     progress = StageProgress(ctx, job.id, index, len(stages))
     networks = (partial(ctx.enhance_networks, config.enhancement)
                 if stages[index] == ENHANCE_STAGE else None)
-    with open_capture(capture_path(ctx, sha256, capture_key)) as reader:
+    limits = capture_limits(ctx.settings)
+    with open_capture(capture_path(ctx, sha256, capture_key), limits) as reader:
         outputs = run_stage(stages[index], reader, inputs, config, progress=progress,
                             networks=networks)
     save_npz(ctx, out_key, outputs)

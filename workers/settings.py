@@ -59,6 +59,10 @@ class Settings(BaseSettings):
     """Largest total unpacked size of a capture zip."""
     max_compression_ratio: float = Field(default=100.0, gt=1.0)
     """Largest unpacked/packed ratio of one zip entry over 1 MiB (zip bombs exceed it)."""
+    max_image_pixels: int = Field(default=25_000_000, gt=0)
+    """Most pixels of one image of a capture (about twice the Azure Kinect's largest colour
+    mode, 4096x3072); checked in capture.json and each image's header before any pixel is
+    decoded, so reading a capture holds at most about 16 bytes per pixel of it."""
     max_json_bytes: int = Field(default=256 * 1024, gt=0)
     """Largest body of a JSON request."""
     stale_upload_s: float = Field(default=600.0, gt=0)

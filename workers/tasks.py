@@ -112,6 +112,13 @@ def validate(self: Task, capture_id: str) -> None:
         ctx.store.capture_rejected(capture_id, "reading the capture took longer than 540 s")
     except _transient_errors() as exc:
         if self.request.retries >= ctx.settings.task_max_retries:
-            raise
+            ctx.store.capture_rejected(capture_id, f"the worker could not fetch the stored "
+                                       f"capture after {self.request.retries} retries "
+                                       f"({type(exc).__name__}: {exc}); upload it again")
+            return
         raise self.retry(exc=exc, countdown=_backoff_s(self.request.retries),
                          max_retries=ctx.settings.task_max_retries) from exc
+    except Exception as exc:  # never leave the upload waiting on a capture stuck `validating`
+        log.exception("validating capture %s failed unexpectedly", capture_id)
+        ctx.store.capture_rejected(capture_id, f"internal error while validating the capture "
+                                   f"({type(exc).__name__}: {exc})")

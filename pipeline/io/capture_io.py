@@ -9,174 +9,33 @@ from __future__ import annotations
 
 import json
 import re
-import struct
 import zipfile
 from collections.abc import Iterable
-from dataclasses import dataclass
-from pathlib import Path, PurePosixPath
+from functools import partial
+from pathlib import Path
 from types import TracebackType
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.capture import CAMERA_ID_PATTERN, CameraInfo, CaptureMeta, Intrinsics, View
+from pipeline.capture import CAMERA_ID_PATTERN, CameraInfo, CaptureMeta, View
+from pipeline.io.capture_images import (
+    ImageSpec,
+    check_declared_sizes,
+    check_image_file,
+    decode_color_rgb,
+    decode_depth,
+)
 from pipeline.io.capture_json import meta_from_json, meta_to_json
+from pipeline.io.capture_source import ArchiveLimits, DirSource, Source, open_zip
 
-_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _COLOR_SUFFIXES = (".jpg", ".jpeg", ".png")
+# Room for a million frames with timestamps; parsed, JSON takes about ten times its size.
+_MAX_CAPTURE_JSON_BYTES = 64 * 1024 * 1024
 
 
-@dataclass(frozen=True)
-class ArchiveLimits:
-    """Limits that keep a hostile zip from exhausting memory or disk."""
-
-    max_files: int = 200_000
-    """Most entries a capture zip may hold."""
-    max_unpacked_bytes: int = 16 * 1024**3
-    """Largest total uncompressed size, bytes."""
-    max_compression_ratio: float = 200.0
-    """Largest uncompressed/compressed ratio of one entry (zip bombs go far beyond)."""
-
-
-class _Source:
-    """Files of a capture, wherever they live; paths are POSIX and relative to the root."""
-
-    def read(self, path: str) -> bytes:
-        raise NotImplementedError
-
-    def read_head(self, path: str, size: int) -> bytes:
-        return self.read(path)[:size]
-
-    def exists(self, path: str) -> bool:
-        raise NotImplementedError
-
-    def list(self) -> list[str]:
-        raise NotImplementedError
-
-    def close(self) -> None:
-        """Directories hold nothing open."""
-
-
-class _DirSource(_Source):
-    def __init__(self, root: Path) -> None:
-        self.root = root
-
-    def read(self, path: str) -> bytes:
-        return (self.root / path).read_bytes()
-
-    def read_head(self, path: str, size: int) -> bytes:
-        with open(self.root / path, "rb") as f:
-            return f.read(size)
-
-    def exists(self, path: str) -> bool:
-        return (self.root / path).is_file()
-
-    def list(self) -> list[str]:
-        return [p.relative_to(self.root).as_posix() for p in self.root.rglob("*") if p.is_file()]
-
-
-class _ZipSource(_Source):
-    def __init__(self, archive: zipfile.ZipFile, prefix: str, names: list[str]) -> None:
-        self.archive = archive
-        self.prefix = prefix
-        self.names = {n[len(prefix):] for n in names if n.startswith(prefix)}
-
-    def read(self, path: str) -> bytes:
-        return self.archive.read(self.prefix + path)
-
-    def read_head(self, path: str, size: int) -> bytes:
-        with self.archive.open(self.prefix + path) as f:
-            return f.read(size)
-
-    def exists(self, path: str) -> bool:
-        return path in self.names
-
-    def list(self) -> list[str]:
-        return sorted(self.names)
-
-    def close(self) -> None:
-        self.archive.close()
-
-
-def _open_zip(path: Path, limits: ArchiveLimits) -> _ZipSource:
-    try:
-        archive = zipfile.ZipFile(path)
-    except (zipfile.BadZipFile, OSError) as exc:
-        raise ValueError(f"{path.name}: not a readable zip archive ({exc})") from None
-    infos = archive.infolist()
-    if len(infos) > limits.max_files:
-        raise ValueError(f"{path.name}: {len(infos)} entries, more than the limit "
-                         f"{limits.max_files}")
-    total = 0
-    names = []
-    for info in infos:
-        name = info.filename
-        parts = PurePosixPath(name).parts
-        if name.startswith(("/", "\\")) or re.match(r"^[A-Za-z]:", name) or "\\" in name:
-            raise ValueError(f"{path.name}: entry {name!r} has an absolute path")
-        if ".." in parts:
-            raise ValueError(f"{path.name}: entry {name!r} escapes the archive (path traversal)")
-        if info.is_dir():
-            continue
-        total += info.file_size
-        if total > limits.max_unpacked_bytes:
-            raise ValueError(f"{path.name}: unpacks to more than {limits.max_unpacked_bytes} bytes")
-        if info.file_size > 1024 * 1024 and (
-                info.file_size > limits.max_compression_ratio * max(info.compress_size, 1)):
-            raise ValueError(f"{path.name}: entry {name!r} is compressed over "
-                             f"{limits.max_compression_ratio:.0f}:1 (zip bomb?)")
-        names.append(name)
-    if "capture.json" in names:
-        prefix = ""
-    else:
-        tops = [n for n in names if n.count("/") == 1 and n.endswith("/capture.json")]
-        if len(tops) != 1:
-            archive.close()
-            raise ValueError(f"{path.name}: no capture.json at the top (or under one top folder)")
-        prefix = tops[0][: -len("capture.json")]
-    return _ZipSource(archive, prefix, names)
-
-
-def _png_header(head: bytes, where: str) -> tuple[int, int, int, int]:
-    """(width, height, bit depth, colour type) from a PNG's IHDR chunk."""
-    if len(head) < 26 or head[:8] != _PNG_SIGNATURE or head[12:16] != b"IHDR":
-        raise ValueError(f"{where}: not a PNG image")
-    width, height, bit_depth, color_type = struct.unpack(">IIBB", head[16:26])
-    return width, height, bit_depth, color_type
-
-
-def _check_depth_file(source: _Source, path: str, intr: Intrinsics) -> None:
-    width, height, bit_depth, color_type = _png_header(source.read_head(path, 33), path)
-    if bit_depth != 16 or color_type != 0:
-        raise ValueError(f"{path}: depth must be a 16-bit single-channel PNG, "
-                         f"got bit depth {bit_depth}, PNG colour type {color_type}")
-    if (width, height) != (intr.width, intr.height):
-        raise ValueError(f"{path}: image is {width}x{height} but depth_intrinsics say "
-                         f"{intr.width}x{intr.height}")
-
-
-def _image_size(data: bytes, where: str) -> tuple[int, int]:
-    if data[:8] == _PNG_SIGNATURE:
-        width, height, _, _ = _png_header(data, where)
-        return width, height
-    if data[:2] != b"\xff\xd8":
-        raise ValueError(f"{where}: not a JPEG or PNG image")
-    # Walk the JPEG markers to the start-of-frame segment, which holds the size.
-    i = 2
-    while i + 9 < len(data):
-        if data[i] != 0xFF:
-            break
-        marker = data[i + 1]
-        seg_len = struct.unpack(">H", data[i + 2:i + 4])[0]
-        if marker in (0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF):
-            height, width = struct.unpack(">HH", data[i + 5:i + 9])
-            return width, height
-        i += 2 + seg_len
-    raise ValueError(f"{where}: JPEG has no readable frame header")
-
-
-def _color_path(source: _Source, camera_id: str, frame: int) -> str | None:
+def _color_path(source: Source, camera_id: str, frame: int) -> str | None:
     for suffix in _COLOR_SUFFIXES:
         path = f"{camera_id}/color/{frame:06d}{suffix}"
         if source.exists(path):
@@ -184,7 +43,22 @@ def _color_path(source: _Source, camera_id: str, frame: int) -> str | None:
     return None
 
 
-def _check_layout(source: _Source, meta: CaptureMeta) -> None:
+def _depth_spec(camera: CameraInfo, frame: int, max_pixels: int) -> ImageSpec:
+    return ImageSpec(f"{camera.id}/depth/{frame:06d}.png", camera.depth_intrinsics,
+                     "depth_intrinsics", max_pixels, depth=True)
+
+
+def _color_spec(camera: CameraInfo, path: str, max_pixels: int) -> ImageSpec:
+    if camera.color_intrinsics is None:  # registered to depth: same size
+        return ImageSpec(path, camera.depth_intrinsics, "depth_intrinsics", max_pixels, False)
+    return ImageSpec(path, camera.color_intrinsics, "color_intrinsics", max_pixels, False)
+
+
+def _check_image(source: Source, spec: ImageSpec) -> None:
+    check_image_file(partial(source.read_head, spec.path), source.size_bytes(spec.path), spec)
+
+
+def _check_layout(source: Source, meta: CaptureMeta, max_pixels: int) -> None:
     files = source.list()
     folders = {p.split("/", 1)[0] for p in files if "/" in p}
     with_depth = {p.split("/", 1)[0] for p in files if p.count("/") >= 2
@@ -197,42 +71,39 @@ def _check_layout(source: _Source, meta: CaptureMeta) -> None:
     for cam in meta.cameras:
         if cam.id not in folders:
             raise ValueError(f"{cam.id}/: folder missing for camera {cam.id!r} in capture.json")
-        color_intr = cam.color_intrinsics or cam.depth_intrinsics
         for frame in meta.frame_indices:
-            depth_path = f"{cam.id}/depth/{frame:06d}.png"
-            if not source.exists(depth_path):
-                raise ValueError(f"{depth_path}: missing (frame {frame} is listed in capture.json)")
-            _check_depth_file(source, depth_path, cam.depth_intrinsics)
+            depth = _depth_spec(cam, frame, max_pixels)
+            if not source.exists(depth.path):
+                raise ValueError(f"{depth.path}: missing (frame {frame} is listed in "
+                                 "capture.json)")
+            _check_image(source, depth)
             color_path = _color_path(source, cam.id, frame)
             if color_path is not None:
-                width, height = _image_size(source.read_head(color_path, 65536), color_path)
-                if (width, height) != (color_intr.width, color_intr.height):
-                    which = "color_intrinsics" if cam.color_intrinsics else "depth_intrinsics"
-                    raise ValueError(f"{color_path}: image is {width}x{height} but {which} say "
-                                     f"{color_intr.width}x{color_intr.height}")
+                _check_image(source, _color_spec(cam, color_path, max_pixels))
 
 
 class CaptureReader:
     """An opened, validated capture. Use as a context manager (a zip stays open)."""
 
-    def __init__(self, source: _Source, meta: CaptureMeta, name: str) -> None:
+    def __init__(self, source: Source, meta: CaptureMeta, name: str,
+                 max_image_pixels: int = ArchiveLimits.max_image_pixels) -> None:
         self._source = source
         self.meta = meta
         self.name = name
+        self.max_image_pixels = max_image_pixels
 
     def read_view(self, camera_id: str, frame_index: int, *, with_color: bool = True) -> View:
         """One camera at one frame: depth in metres (0 = none), colour as RGB when present."""
         camera = self.meta.camera(camera_id)
-        depth_path = f"{camera_id}/depth/{frame_index:06d}.png"
-        raw = _decode(self._source.read(depth_path), cv2.IMREAD_UNCHANGED, depth_path)
-        if raw.dtype != np.uint16 or raw.ndim != 2:
-            raise ValueError(f"{depth_path}: depth must be a 16-bit single-channel PNG")
+        depth = _depth_spec(camera, frame_index, self.max_image_pixels)
+        raw = decode_depth(self._source.read(depth.path), depth)
         depth_m = raw.astype(np.float32) * np.float32(self.meta.depth_scale)
+        del raw  # the float copy replaces it; keep one image's worth of memory, not two
         color = None
         color_path = _color_path(self._source, camera_id, frame_index) if with_color else None
         if color_path is not None:
-            bgr = _decode(self._source.read(color_path), cv2.IMREAD_COLOR, color_path)
-            color = np.ascontiguousarray(bgr[:, :, ::-1])
+            spec = _color_spec(camera, color_path, self.max_image_pixels)
+            color = decode_color_rgb(self._source.read(color_path), spec)
         return View(camera=camera, frame_index=frame_index, depth_m=depth_m, color_rgb=color)
 
     def read_frame(self, frame_index: int, *, with_color: bool = True) -> list[View]:
@@ -253,38 +124,43 @@ class CaptureReader:
         self.close()
 
 
-def _decode(data: bytes, flags: int, where: str) -> NDArray[np.generic]:
-    image = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
-    if image is None:
-        raise ValueError(f"{where}: image data are corrupt")
-    return image
-
-
 def open_capture(path: str | Path, limits: ArchiveLimits | None = None) -> CaptureReader:
     """Opens and validates a capture directory or zip; raises ValueError naming what is wrong."""
     path = Path(path)
+    limits = limits or ArchiveLimits()
     if not path.exists():
         raise ValueError(f"{path}: no such capture (directory or .zip)")
-    source: _Source
+    source: Source
     if path.is_dir():
-        source = _DirSource(path)
+        source = DirSource(path)
     elif zipfile.is_zipfile(path) or path.suffix.lower() == ".zip":
-        source = _open_zip(path, limits or ArchiveLimits())
+        source = open_zip(path, limits)
     else:
         raise ValueError(f"{path.name}: a capture is a directory or a .zip archive")
     try:
-        if not source.exists("capture.json"):
-            raise ValueError("capture.json: missing at the top of the capture")
-        try:
-            document = json.loads(source.read("capture.json"))
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-            raise ValueError(f"capture.json: not valid JSON ({exc})") from None
-        meta = meta_from_json(document)
-        _check_layout(source, meta)
-    except (ValueError, zipfile.BadZipFile, OSError, EOFError) as exc:
+        meta = _read_meta(source, limits.max_image_pixels)
+        _check_layout(source, meta, limits.max_image_pixels)
+    except ValueError:
         source.close()
-        raise ValueError(str(exc)) from None
-    return CaptureReader(source, meta, path.name)
+        raise
+    return CaptureReader(source, meta, path.name, limits.max_image_pixels)
+
+
+def _read_meta(source: Source, max_image_pixels: int) -> CaptureMeta:
+    if not source.exists("capture.json"):
+        raise ValueError("capture.json: missing at the top of the capture")
+    if source.size_bytes("capture.json") > _MAX_CAPTURE_JSON_BYTES:
+        raise ValueError(f"capture.json: {source.size_bytes('capture.json')} bytes, more than "
+                         f"the {_MAX_CAPTURE_JSON_BYTES} a capture's description may take")
+    try:
+        document = json.loads(source.read("capture.json"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ValueError(f"capture.json: not valid JSON ({exc})") from None
+    except RecursionError:  # json nests deeper than Python's stack allows
+        raise ValueError("capture.json: nested too deeply") from None
+    meta = meta_from_json(document)
+    check_declared_sizes(meta, max_image_pixels)
+    return meta
 
 
 def _encode_png(image: NDArray[np.integer], where: str) -> bytes:

@@ -15,7 +15,7 @@ from datetime import UTC, datetime
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Path, Request, Response
-from sqlalchemy import select
+from sqlalchemy import delete, select
 from sqlalchemy.exc import IntegrityError
 from starlette.concurrency import run_in_threadpool
 
@@ -87,39 +87,52 @@ def _state(gateway: Gateway, capture_id: str) -> Capture | None:
         return session.get(Capture, capture_id)
 
 
-def _forget(gateway: Gateway, capture_id: str, state: str = "rejected") -> None:
-    """Delete a capture in ``state`` (rejected, or never queued for validation): row and zip."""
+def _forget(gateway: Gateway, capture_id: str, state: str = "rejected") -> bool:
+    """Delete a capture still in ``state`` (rejected, or still validating): row and zip.
+
+    One conditional DELETE, so a capture a worker has just marked ready is never taken."""
     with gateway.sessions() as session:
-        row = session.get(Capture, capture_id)
-        if row is None or row.state != state:
-            return
-        key = row.storage_key
-        session.delete(row)
+        key = session.scalar(select(Capture.storage_key).where(Capture.id == capture_id))
+        deleted = session.execute(delete(Capture).where(Capture.id == capture_id,
+                                                        Capture.state == state))
         session.commit()
+    if key is None or not deleted.rowcount:  # type: ignore[attr-defined]
+        return False
     with contextlib.suppress(FileNotFoundError):
         gateway.storage.delete(key)
+    return True
+
+
+async def _settled(gateway: Gateway, capture_id: str, row: Capture | None) -> Capture:
+    """The answer for a capture whose validation has ended: the row, or the problem."""
+    if row is None:
+        raise ProblemError(409, "The capture was removed while it was being validated; "
+                           "upload it again.")
+    if row.state == "rejected":
+        await run_in_threadpool(_forget, gateway, capture_id)
+        raise ProblemError(422, f"The capture is not valid: {row.error}",
+                           kind="invalid-capture")
+    return row
 
 
 async def _await_validation(gateway: Gateway, capture_id: str) -> Capture:
-    deadline = time.monotonic() + gateway.settings.validation_timeout_s
-    while True:
+    timeout_s = gateway.settings.validation_timeout_s
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() <= deadline:
         row = await run_in_threadpool(_state, gateway, capture_id)
-        if row is None:
-            raise ProblemError(409, "The capture was removed while it was being validated; "
-                               "upload it again.")
-        if row.state == "ready":
-            return row
-        if row.state == "rejected":
-            await run_in_threadpool(_forget, gateway, capture_id)
-            raise ProblemError(422, f"The capture is not valid: {row.error}",
-                               kind="invalid-capture")
-        if time.monotonic() > deadline:
-            raise ProblemError(
-                503, f"No worker validated the capture within "
-                f"{gateway.settings.validation_timeout_s:.0f} s (are workers running on the "
-                f"'{QUEUE_VALIDATE}' queue?); upload it again later.",
-                kind="validation-timeout", headers={"Retry-After": "30"})
+        if row is None or row.state != "validating":
+            return await _settled(gateway, capture_id, row)
         await asyncio.sleep(_POLL_S)
+    # Out of time: end the validation here, so the capture is not left `validating` for good
+    # (a worker that died on it, or none running); one that finished meanwhile is kept.
+    if not await run_in_threadpool(_forget, gateway, capture_id, "validating"):
+        return await _settled(gateway, capture_id,
+                              await run_in_threadpool(_state, gateway, capture_id))
+    raise ProblemError(
+        503, f"No worker finished validating the capture within {timeout_s:.0f} s: none is "
+        f"running on the '{QUEUE_VALIDATE}' queue, or the one reading it died. The capture "
+        "was not kept; upload it again later.",
+        kind="validation-timeout", headers={"Retry-After": "30"})
 
 
 @router.post("", status_code=201, response_model=CapturePublic, openapi_extra=_UPLOAD_BODY,
