@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
@@ -14,7 +16,11 @@ from app.core import problems
 from app.core.context import Gateway
 from app.core.limits import BodyLimitMiddleware
 from app.core.metrics import MetricsMiddleware
-from app.core.uploads import clean_stale_uploads
+from app.core.uploads import (
+    BodyIdleTimeoutMiddleware,
+    clean_stale_uploads,
+    sweep_stale_uploads,
+)
 from app.docs import mount_docs
 from app.schemas import API_PREFIX
 from workers.settings import Settings, get_settings
@@ -57,7 +63,12 @@ def create_app(settings: Settings | None = None, *, viewer: bool = True) -> Fast
         removed = clean_stale_uploads(settings.tmp_dir, settings.stale_upload_s)
         if removed:
             log.info("removed %d partial uploads left by a stopped gateway", removed)
+        sweeper = asyncio.create_task(sweep_stale_uploads(settings.tmp_dir,
+                                                          settings.stale_upload_s))
         yield
+        sweeper.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await sweeper
         gateway.close()
 
     app = FastAPI(title="volumesh", version="0.1.0", description=DESCRIPTION,
@@ -69,6 +80,7 @@ def create_app(settings: Settings | None = None, *, viewer: bool = True) -> Fast
     mount_docs(app)
     if viewer:
         _mount_viewer(app)
+    app.add_middleware(BodyIdleTimeoutMiddleware, idle_timeout_s=settings.upload_idle_timeout_s)
     app.add_middleware(BodyLimitMiddleware, upload_limit=settings.max_upload_bytes,
                        json_limit=settings.max_json_bytes)
     if settings.cors_origins:

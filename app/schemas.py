@@ -315,10 +315,16 @@ class Health(BaseModel):
 
 
 class Problem(BaseModel):
-    """RFC 9457 problem details, the body of every error."""
+    """RFC 9457 problem details (``application/problem+json``), the body of every error."""
 
-    type: str
-    title: str
-    status: int
-    detail: str
-    instance: str | None = None
+    model_config = ConfigDict(extra="allow", title="Problem")
+
+    type: str = Field(description="A URI whose last segment names the kind of problem "
+                                  "(not-found, validation-error, ...).")
+    title: str = Field(description="The HTTP status's phrase.")
+    status: int = Field(ge=400, le=599, description="The HTTP status code.")
+    detail: str = Field(description="What went wrong and what to do about it.")
+    instance: str | None = Field(default=None, description="The path that was requested.")
+    errors: list[dict[str, Any]] | None = Field(
+        default=None, description="validation-error only: each error's `loc`, `msg` and "
+                                  "`type`.")

@@ -1,5 +1,9 @@
 """The work stages' outputs in storage: ``.npz`` files keyed by the capture's hash, the
-stage's position and name, and the stage's key over the settings it depends on."""
+stage's position and name, and the stage's key over the settings it depends on.
+
+They live while a job of their capture may read them: a finished job's export removes its
+capture's outputs once no other job of that capture is queued or running (those may share
+them by key), so storage keeps assets, not tens of megabytes of intermediates per job."""
 
 from __future__ import annotations
 
@@ -10,14 +14,19 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from sqlalchemy import func, select
 
 from workers.context import WorkerContext
+from workers.jobstore import LIVE
+from workers.models import Capture, Job
 from workers.plan import stage_keys, work_stages
+
+ARTIFACTS = "artifacts"
 
 
 def artifact_key(sha256: str, index: int, stage: str, chain: str) -> str:
     """The storage key of one work stage's output."""
-    return f"artifacts/{sha256}/{index:02d}-{stage}-{chain}.npz"
+    return f"{ARTIFACTS}/{sha256}/{index:02d}-{stage}-{chain}.npz"
 
 
 def artifact_keys(sha256: str, stages: tuple[str, ...], config: Any) -> list[str]:
@@ -46,7 +55,7 @@ def load_npz(ctx: WorkerContext, key: str) -> dict[str, np.ndarray]:
     """The arrays stored under ``key`` (through a cached copy when storage is remote)."""
     local = ctx.storage.local_path(key)
     if local is None:
-        local = ctx.settings.cache_dir / "artifacts" / key.replace("/", "_")
+        local = ctx.settings.cache_dir / ARTIFACTS / key.replace("/", "_")
         if not local.is_file():
             ctx.storage.get_to_path(key, local)
     with np.load(local, allow_pickle=False) as data:
@@ -59,3 +68,29 @@ def load_merged(ctx: WorkerContext, keys: list[str]) -> dict[str, np.ndarray]:
     for key in keys:
         merged.update(load_npz(ctx, key))
     return merged
+
+
+def capture_in_use(ctx: WorkerContext, sha256: str, finished_job_id: str) -> bool:
+    """Whether a job other than ``finished_job_id`` on the capture ``sha256`` is queued or
+    running (it may load the capture's stored outputs, shared by key)."""
+    with ctx.store.sessions() as session:
+        count = session.scalar(
+            select(func.count()).select_from(Job).join(Capture, Job.capture_id == Capture.id)
+            .where(Capture.sha256 == sha256, Job.state.in_(LIVE), Job.id != finished_job_id))
+    return bool(count)
+
+
+def discard_outputs(ctx: WorkerContext, sha256: str, finished_job_id: str) -> int:
+    """Delete the capture's stage outputs (stored and cached copies) unless another job of it
+    is live; returns how many stored ones went. Called once the finished job's asset is kept.
+
+    A job created in the instant between the check and the delete may find an output gone;
+    its stage then fails and retries, which is the price of not tracking readers per key."""
+    if capture_in_use(ctx, sha256, finished_job_id):
+        return 0
+    removed = ctx.storage.delete_prefix(f"{ARTIFACTS}/{sha256}/")
+    cached = ctx.settings.cache_dir / ARTIFACTS
+    if cached.is_dir():
+        for copy in cached.glob(f"{ARTIFACTS}_{sha256}_*"):
+            copy.unlink(missing_ok=True)
+    return removed

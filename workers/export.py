@@ -1,10 +1,11 @@
 """A job's export stage: the mesh from the stage outputs, stored as the job's asset
-(mesh.glb with Draco, mesh.ply, report.json)."""
+(mesh.glb with Draco, mesh.ply, report.json); then the stage outputs are let go."""
 
 from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import tempfile
 import time
 from pathlib import Path
@@ -12,10 +13,12 @@ from typing import Any
 
 import numpy as np
 
-from workers.artifacts import artifact_keys, load_merged
+from workers.artifacts import artifact_keys, discard_outputs, load_merged
 from workers.context import WorkerContext
 from workers.jobstore import JobView
 from workers.plan import job_config
+
+log = logging.getLogger(__name__)
 
 _DRACO_OPTIONS = {"draco_position_bits": "position_quantization_bits",
                   "draco_normal_bits": "normal_quantization_bits",
@@ -61,7 +64,19 @@ def export(ctx: WorkerContext, job: JobView, stages: tuple[str, ...]) -> None:
                      len(glb), seconds)
     files["report.json"] = _put(ctx, asset_id, "report.json",
                                 json.dumps(report, indent=1).encode(), "application/json")
-    ctx.store.succeed(job.id, asset_id, files, seconds)
+    if ctx.store.succeed(job.id, asset_id, files, seconds):
+        _let_go(ctx, sha256, job.id)
+
+
+def _let_go(ctx: WorkerContext, sha256: str, job_id: str) -> None:
+    """Delete the capture's stage outputs now that the asset is stored (nothing retries an
+    export of a succeeded job); a failure here costs disk, not the job."""
+    try:
+        removed = discard_outputs(ctx, sha256, job_id)
+    except Exception:
+        log.warning("job %s: could not delete its stage outputs", job_id, exc_info=True)
+        return
+    log.info("job %s: deleted %d stage outputs of capture %s", job_id, removed, sha256[:12])
 
 
 def _report(ctx: WorkerContext, job: JobView, stages: tuple[str, ...], mesh: Any,

@@ -35,7 +35,8 @@ def work_stages(stages: tuple[str, ...]) -> tuple[str, ...]:
 
 def stage_keys(stages: tuple[str, ...], config: Any) -> list[str]:
     """One key per stage over every setting that stage or an earlier one reads, so changing a
-    late stage's settings reuses the early stages' stored outputs."""
+    late stage's settings reuses the early stages' stored outputs while they are kept (until
+    an asset of the capture is stored and no other job of it is live)."""
     from pipeline.stages import SECTION_FIRST_STAGE
 
     whole = dataclasses.asdict(config)

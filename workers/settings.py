@@ -66,7 +66,11 @@ class Settings(BaseSettings):
     max_json_bytes: int = Field(default=256 * 1024, gt=0)
     """Largest body of a JSON request."""
     stale_upload_s: float = Field(default=600.0, gt=0)
-    """A partial upload untouched this long is from a gateway that died; it is deleted."""
+    """A partial upload untouched this long is from a gateway that died; the gateway deletes
+    it while running (checked every ``stale_upload_s / 4``, at most every minute)."""
+    upload_idle_timeout_s: float = Field(default=30.0, gt=0)
+    """A request body that sends no bytes for this long is answered 408 and dropped (an upload's
+    partial file deleted), so a stalled client cannot hold a request open for good."""
     validation_timeout_s: float = Field(default=120.0, gt=0)
     """How long an upload waits for a worker to validate the capture."""
 

@@ -45,6 +45,9 @@ class Storage(Protocol):
     def delete(self, key: str) -> None:
         """Remove the object if present."""
 
+    def delete_prefix(self, prefix: str) -> int:
+        """Remove every object under the folder ``prefix`` (ends with ``/``); returns how many."""
+
     def ping(self) -> None:
         """Raise when the storage cannot be reached."""
 
@@ -54,6 +57,12 @@ def _check_key(key: str) -> str:
     if not key or key.startswith("/") or any(p in ("", ".", "..") for p in parts):
         raise ValueError(f"storage key {key!r} is not a plain relative path")
     return key
+
+
+def _check_prefix(prefix: str) -> str:
+    if not prefix.endswith("/"):
+        raise ValueError(f"storage prefix {prefix!r} must be a folder ending with '/'")
+    return _check_key(prefix[:-1])
 
 
 def atomic_copy(source: Path, target: Path) -> None:
@@ -131,6 +140,20 @@ class LocalStorage:
         with contextlib.suppress(FileNotFoundError):
             self._path(key).unlink()
 
+    def delete_prefix(self, prefix: str) -> int:
+        folder = self._path(_check_prefix(prefix))
+        removed = 0
+        for path in sorted(folder.rglob("*"), reverse=True):  # files before their folders
+            with contextlib.suppress(OSError):  # gone already, or written to meanwhile
+                if path.is_dir():
+                    path.rmdir()
+                else:
+                    path.unlink()
+                    removed += 1
+        with contextlib.suppress(OSError):  # gone already, or written to meanwhile
+            folder.rmdir()
+        return removed
+
     def ping(self) -> None:
         if not os.access(self.root, os.W_OK):
             raise OSError(f"storage folder {self.root} is not writable")
@@ -200,6 +223,18 @@ class S3Storage:
 
     def delete(self, key: str) -> None:
         self.client.delete_object(Bucket=self.bucket, Key=self._key(key))
+
+    def delete_prefix(self, prefix: str) -> int:
+        pages = self.client.get_paginator("list_objects_v2").paginate(
+            Bucket=self.bucket, Prefix=self._key(_check_prefix(prefix)) + "/")
+        removed = 0
+        for page in pages:  # at most 1000 keys a page, the most one DeleteObjects takes
+            keys = [{"Key": item["Key"]} for item in page.get("Contents", ())]
+            if keys:
+                self.client.delete_objects(Bucket=self.bucket,
+                                           Delete={"Objects": keys, "Quiet": True})
+                removed += len(keys)
+        return removed
 
     def ping(self) -> None:
         self.client.head_bucket(Bucket=self.bucket)

@@ -15,6 +15,9 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from app.schemas import API_PREFIX
 from workers.models import JOB_STATES, Job
 
+UPLOAD_BYTES_KEY = "upload_bytes"
+"""Request-state name under which a received upload leaves its size for the counter."""
+
 
 class Metrics:
     def __init__(self) -> None:
@@ -25,7 +28,8 @@ class Metrics:
                                  ["method", "route"], registry=self.registry,
                                  buckets=(.001, .0025, .005, .01, .025, .05, .1, .25, .5, 1,
                                           2.5, 5, 10, 30))
-        self.upload_bytes = Counter("volumesh_upload_bytes", "Capture bytes received",
+        self.upload_bytes = Counter("volumesh_upload_bytes",
+                                    "Bytes of capture zips received in accepted uploads",
                                     registry=self.registry)
 
     def watch_jobs(self, sessions: Callable[[], Any]) -> None:
@@ -83,6 +87,9 @@ class MetricsMiddleware:
                 status = message["status"]
             await send(message)
 
+        # The request's state dict is shared with every Request made from this scope, so the
+        # upload's size set deep in the route is read here once the answer is known.
+        state = scope.setdefault("state", {})
         try:
             await self.app(scope, receive, send_status)
         finally:
@@ -90,3 +97,6 @@ class MetricsMiddleware:
             method = scope.get("method", "")
             self.metrics.requests.labels(method, route, str(status)).inc()
             self.metrics.latency.labels(method, route).observe(time.perf_counter() - started)
+            uploaded = state.get(UPLOAD_BYTES_KEY)
+            if uploaded and 200 <= status < 300:
+                self.metrics.upload_bytes.inc(uploaded)

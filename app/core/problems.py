@@ -15,10 +15,52 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from app.schemas import Problem
+
 PROBLEM_MEDIA_TYPE = "application/problem+json"
 PROBLEM_TYPE_BASE = "https://volumesh.dev/problems/"
 
 log = logging.getLogger(__name__)
+
+# The statuses shared by routes, for ``problem_responses``: each route adds its own (404, ...).
+SERVER_ERROR = {500: "A bug in the gateway, logged whole; bad input never gives one."}
+UNAVAILABLE = {503: "The job store or the broker is unreachable (`service-unavailable`, "
+                    "`Retry-After: 5`); nothing was changed."}
+READ = {401: "No valid API key, when `VOLUMESH_REQUIRE_AUTH_FOR_READS` is set (`unauthorized`, "
+             "`WWW-Authenticate: Bearer`).",
+        422: "A path or query parameter of the wrong form (`validation-error`).",
+        **UNAVAILABLE, **SERVER_ERROR}
+WRITE = {401: "No valid API key (`unauthorized`, `WWW-Authenticate: Bearer`).",
+         422: "A bad body or parameter (`validation-error`, with `errors`).",
+         **UNAVAILABLE, **SERVER_ERROR}
+BODY = {400: "The body cannot be read as JSON: not UTF-8 text (`malformed-body`).",
+        408: "The body stopped arriving for `VOLUMESH_UPLOAD_IDLE_TIMEOUT_S` (`body-timeout`).",
+        413: "The body is over `VOLUMESH_MAX_JSON_BYTES` (`body-too-large`)."}
+# What FastAPI says of a body it cannot decode at all (JSON that fails to parse is a 422).
+_UNREADABLE_BODY = "There was an error parsing the body"
+# Headers every problem of a status carries (the 401 challenge, when to retry a 503).
+_HEADERS = {401: ("WWW-Authenticate", "`Bearer realm=\"volumesh\"`."),
+            503: ("Retry-After", "Seconds to wait before trying again.")}
+# Reads need a key only when VOLUMESH_REQUIRE_AUTH_FOR_READS is set: the empty requirement
+# tells clients (and schemathesis's ignored-auth check) that the bearer key is optional.
+OPTIONAL_AUTH: dict[str, Any] = {"security": [{}]}
+
+
+def problem_responses(*statuses: dict[int, str]) -> dict[int | str, dict[str, Any]]:
+    """OpenAPI ``responses=`` declaring each status (later dicts win) with a problem+json body."""
+    merged: dict[int, str] = {}
+    for more in statuses:
+        merged.update(more)
+    schema = Problem.model_json_schema()
+    declared: dict[int | str, dict[str, Any]] = {}
+    for status, text in sorted(merged.items()):
+        declared[status] = {"description": text,
+                            "content": {PROBLEM_MEDIA_TYPE: {"schema": schema}}}
+        if status in _HEADERS:
+            name, description = _HEADERS[status]
+            declared[status]["headers"] = {name: {"description": description, "required": True,
+                                                  "schema": {"type": "string"}}}
+    return declared
 
 
 class ProblemError(Exception):
@@ -72,11 +114,15 @@ async def _on_http(request: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, StarletteHTTPException)
     status = exc.status_code
     detail = exc.detail if isinstance(exc.detail, str) else str(exc.detail)
+    kind = None
     if status == 404 and detail == "Not Found":
         detail = f"There is no resource at {request.url.path}; the API lives under /api/v1."
     elif status == 405:
         detail = f"{request.method} is not allowed on {request.url.path}."
-    return problem_response(status, detail, instance=request.url.path,
+    elif status == 400 and detail == _UNREADABLE_BODY:
+        detail, kind = ("The body cannot be read as JSON: send UTF-8 JSON with "
+                        "'Content-Type: application/json'."), "malformed-body"
+    return problem_response(status, detail, kind=kind, instance=request.url.path,
                             headers=dict(exc.headers or {}))
 
 

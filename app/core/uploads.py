@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import hashlib
+import logging
 import os
 import time
 import uuid
@@ -21,7 +22,9 @@ from typing import IO
 from python_multipart.exceptions import MultipartParseError
 from python_multipart.multipart import MultipartParser, parse_options_header
 from starlette.requests import ClientDisconnect, Request
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from app.core.metrics import UPLOAD_BYTES_KEY
 from app.core.problems import ProblemError
 
 ZIP_TYPES = frozenset({"application/zip", "application/x-zip-compressed",
@@ -29,6 +32,9 @@ ZIP_TYPES = frozenset({"application/zip", "application/x-zip-compressed",
 MULTIPART_TYPE = "multipart/form-data"
 FILE_FIELD = "file"
 _MAX_PART_HEADERS = 16
+_MAX_SWEEP_INTERVAL_S = 60.0
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -172,6 +178,8 @@ async def receive_upload(request: Request, tmp_dir: Path, limit: int) -> Receive
                 multipart.finish()
         if sink.size == 0:
             raise ProblemError(400, "The capture zip is empty (0 bytes).", kind="empty-upload")
+        # Counted by the metrics middleware only if the request ends accepted (2xx).
+        setattr(request.state, UPLOAD_BYTES_KEY, sink.size)
         return ReceivedUpload(path=path, sha256=sink.digest.hexdigest(), size_bytes=sink.size)
     except ClientDisconnect:
         _discard(path)
@@ -207,3 +215,55 @@ def clean_stale_uploads(tmp_dir: Path, older_than_s: float) -> int:
                 _discard(part)
                 removed += 1
     return removed
+
+
+async def sweep_stale_uploads(tmp_dir: Path, older_than_s: float) -> None:
+    """Delete stale partial uploads every ``older_than_s / 4`` (at most a minute apart) until
+    cancelled, so a gateway that runs for weeks does not keep them until its next restart."""
+    interval_s = min(older_than_s / 4, _MAX_SWEEP_INTERVAL_S)
+    while True:
+        await asyncio.sleep(interval_s)
+        try:
+            removed = await asyncio.to_thread(clean_stale_uploads, tmp_dir, older_than_s)
+        except OSError:  # a passing file-system error must not end the sweeping for good
+            log.warning("could not sweep partial uploads in %s", tmp_dir, exc_info=True)
+            continue
+        if removed:
+            log.info("removed %d stale partial uploads", removed)
+
+
+class BodyIdleTimeoutMiddleware:
+    """408 for a request whose body stops arriving: no bytes for ``idle_timeout_s`` while more
+    are due (a client that declared a large body, sent a little and stalled).
+
+    The problem is raised from ``receive``, so the reader (``receive_upload``) deletes its
+    partial file on the way out; ``Connection: close`` drops the half-sent body. Once the body
+    is complete, ``receive`` is passed through untimed (streaming answers wait on it for the
+    client's disconnect).
+    """
+
+    def __init__(self, app: ASGIApp, idle_timeout_s: float) -> None:
+        self.app = app
+        self.idle_timeout_s = idle_timeout_s
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        body_done = False
+
+        async def timed() -> Message:
+            nonlocal body_done
+            if body_done:
+                return await receive()
+            try:
+                message = await asyncio.wait_for(receive(), self.idle_timeout_s)
+            except TimeoutError:
+                raise ProblemError(
+                    408, f"No bytes of the request body arrived for {self.idle_timeout_s:g} s "
+                    "(VOLUMESH_UPLOAD_IDLE_TIMEOUT_S); nothing was stored. Send the body again.",
+                    kind="body-timeout", headers={"Connection": "close"}) from None
+            body_done = message["type"] != "http.request" or not message.get("more_body")
+            return message
+
+        await self.app(scope, timed, send)

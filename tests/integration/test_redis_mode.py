@@ -163,18 +163,12 @@ def test_a_job_runs_to_a_draco_glb(cluster: Cluster) -> None:
     ply = cluster.client.get(done["links"]["mesh_ply"])
     assert ply.status_code == 200 and ply.content.startswith(b"ply")
 
-    # The same settings again: every stage's output is stored, so only export works.
+    # The stage outputs went with the export: the same settings again recompute every stage,
+    # and give the same mesh.
     again = wait_job(cluster.client, cluster.submit()["id"], {"succeeded", "failed"}, 120)
     assert again["state"] == "succeeded", again
-    assert all(again["stage_timings"][s] == 0 for s in again["stages"][:-1]), again
-    # A change to a late stage reuses the stages before it and recomputes from it on.
-    later = wait_job(cluster.client, cluster.submit(remesh={"iterations": 2})["id"],
-                     {"succeeded", "failed"}, 120)
-    assert later["state"] == "succeeded", later
-    timings = later["stage_timings"]
-    at = later["stages"].index("remesh")
-    assert all(timings[s] == 0 for s in later["stages"][:at]), timings
-    assert all(timings[s] > 0 for s in later["stages"][at:]), timings
+    assert all(again["stage_timings"][s] > 0 for s in again["stages"][:-1]), again
+    assert _fetch_asset(cluster, again)[1]["triangles"] == report["triangles"]
 
 
 def test_a_killed_worker_loses_nothing(cluster: Cluster) -> None:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -11,14 +10,6 @@ import pytest
 from tests.integration.services import MotoS3
 from workers.settings import Settings
 from workers.storage import LocalStorage, Storage, make_storage
-
-
-@pytest.fixture(scope="module")
-def moto(tmp_path_factory: pytest.TempPathFactory) -> Iterator[MotoS3]:
-    server = MotoS3(tmp_path_factory.mktemp("moto")).start()
-    server.make_bucket("volumesh-test")
-    yield server
-    server.stop()
 
 
 def s3_settings(data_dir: Path, moto: MotoS3) -> Settings:

@@ -14,7 +14,7 @@ from fastapi import APIRouter, Path, Request
 from fastapi.responses import Response, StreamingResponse
 
 from app.api.deps import ReadAccessDep, SessionDep, StorageDep
-from app.core.problems import ProblemError
+from app.core.problems import OPTIONAL_AUTH, READ, ProblemError, problem_responses
 from app.schemas import ID_PATTERN, AssetFileName, AssetPublic
 from workers.models import Asset
 
@@ -23,6 +23,18 @@ router = APIRouter(prefix="/assets", tags=["assets"])
 AssetId = Annotated[str, Path(pattern=ID_PATTERN, description="An asset id.")]
 IMMUTABLE = "public, max-age=31536000, immutable"
 _RANGE = re.compile(r"^bytes=(\d*)-(\d*)$")
+# mesh.glb, report.json and mesh.ply (binary PLY) in that order.
+_FILE_TYPES: dict[str, Any] = {media: {"schema": {"type": "string", "format": "binary"}}
+                               for media in ("model/gltf-binary", "application/json",
+                                             "application/octet-stream")}
+# Read from the request itself (one range, strong ETags), declared so that clients and the
+# contract tests know them.
+_FILE_EXTRA: dict[str, Any] = {**OPTIONAL_AUTH, "parameters": [
+    {"name": name, "in": "header", "required": False, "description": text,
+     "schema": {"type": "string"}}
+    for name, text in (("Range", "One `bytes=first-last` range: a 206, or a 416 outside it."),
+                       ("If-None-Match", "The file's ETag: a 304 when it matches."),
+                       ("If-Range", "Send the range only while the file's ETag is this."))]}
 
 
 def _asset(session: Any, asset_id: str) -> Asset:
@@ -32,7 +44,8 @@ def _asset(session: Any, asset_id: str) -> Asset:
     return row
 
 
-@router.get("/{asset_id}", response_model=AssetPublic, responses={404: {}})
+@router.get("/{asset_id}", response_model=AssetPublic, openapi_extra=OPTIONAL_AUTH,
+            responses=problem_responses(READ, {404: "There is no such asset."}))
 def get_asset(asset_id: AssetId, session: SessionDep, _read: ReadAccessDep) -> AssetPublic:
     return AssetPublic.of(_asset(session, asset_id))
 
@@ -74,13 +87,13 @@ def _etag_matches(header: str | None, etag: str) -> bool:
 
 
 @router.head("/{asset_id}/{name}", include_in_schema=False)
-@router.get("/{asset_id}/{name}", response_class=Response,
-                  responses={200: {"content": {"model/gltf-binary": {}, "application/json": {},
-                                               "application/octet-stream": {}},
-                                   "description": "The file."},
-                             206: {"description": "Part of the file (Range)."},
-                             304: {"description": "Not modified (If-None-Match)."},
-                             404: {}, 416: {}})
+@router.get("/{asset_id}/{name}", response_class=Response, openapi_extra=_FILE_EXTRA,
+            responses={200: {"content": _FILE_TYPES, "description": "The file."},
+                       206: {"content": _FILE_TYPES, "description": "Part of the file (Range)."},
+                       304: {"description": "Not modified (If-None-Match)."},
+                       **problem_responses(READ, {
+                           404: "There is no such asset, or it has no such file.",
+                           416: "The range lies outside the file (`range-not-satisfiable`)."})})
 def get_asset_file(asset_id: AssetId, name: AssetFileName, request: Request,
                    session: SessionDep, storage: StorageDep, _read: ReadAccessDep) -> Response:
     """mesh.glb (Draco-compressed glTF binary), mesh.ply or report.json."""

@@ -22,7 +22,7 @@ from starlette.concurrency import run_in_threadpool
 from app.api.deps import ApiKeyDep, GatewayDep, ReadAccessDep, SessionDep
 from app.api.pagination import PageLimit, PageOffset, fetch_page
 from app.core.context import Gateway
-from app.core.problems import ProblemError
+from app.core.problems import BODY, OPTIONAL_AUTH, READ, WRITE, ProblemError, problem_responses
 from app.core.uploads import ReceivedUpload, receive_upload
 from app.core.zipcheck import ZipLimits, check_zip
 from app.schemas import API_PREFIX, ID_PATTERN, CapturePage, CapturePublic
@@ -44,6 +44,22 @@ _UPLOAD_BODY: dict[str, Any] = {
                 "properties": {"file": {"type": "string", "format": "binary"}}}},
         },
     },
+}
+
+
+_UPLOAD_PROBLEMS = {
+    400: "Not a zip or a damaged one (`not-a-zip`), an empty body (`empty-upload`), a malformed "
+         "form or one without (or with two) `file` fields, a bad `Content-Length`, the client "
+         "gone mid-upload (`upload-interrupted`).",
+    409: "The capture was removed while it was being validated.",
+    413: "Over `VOLUMESH_MAX_UPLOAD_BYTES` (`upload-too-large`, `body-too-large`), too many "
+         "entries (`too-many-files`), too large unpacked or too compressed (`zip-bomb`).",
+    415: "Another Content-Type (`unsupported-media-type`).",
+    422: "Refused at zip level (`invalid-capture-zip`) or by the reader (`invalid-capture`), "
+         "the detail naming the file and field.",
+    503: "No worker validated it within `VOLUMESH_VALIDATION_TIMEOUT_S` (`validation-timeout`, "
+         "`Retry-After: 30`), the gateway stopped mid-upload, or the job store or broker is "
+         "unreachable; the capture is not kept.",
 }
 
 
@@ -137,7 +153,7 @@ async def _await_validation(gateway: Gateway, capture_id: str) -> Capture:
 
 @router.post("", status_code=201, response_model=CapturePublic, openapi_extra=_UPLOAD_BODY,
              summary="Upload a capture zip",
-             responses={400: {}, 401: {}, 413: {}, 415: {}, 422: {}, 503: {}})
+             responses=problem_responses(WRITE, BODY, _UPLOAD_PROBLEMS))
 async def upload_capture(request: Request, response: Response, gateway: GatewayDep,
                          _key: ApiKeyDep) -> CapturePublic:
     """Stores the capture (once per content) after a worker has read it whole.
@@ -170,7 +186,8 @@ async def upload_capture(request: Request, response: Response, gateway: GatewayD
 CaptureId = Annotated[str, Path(pattern=ID_PATTERN, description="A capture id.")]
 
 
-@router.get("/{capture_id}", response_model=CapturePublic, responses={404: {}})
+@router.get("/{capture_id}", response_model=CapturePublic, openapi_extra=OPTIONAL_AUTH,
+            responses=problem_responses(READ, {404: "There is no such capture."}))
 def get_capture(capture_id: CaptureId, session: SessionDep,
                 _read: ReadAccessDep) -> CapturePublic:
     row = session.get(Capture, capture_id)
@@ -179,7 +196,8 @@ def get_capture(capture_id: CaptureId, session: SessionDep,
     return CapturePublic.of(row)
 
 
-@router.get("", response_model=CapturePage)
+@router.get("", response_model=CapturePage, openapi_extra=OPTIONAL_AUTH,
+            responses=problem_responses(READ))
 def list_captures(session: SessionDep, _read: ReadAccessDep, limit: PageLimit = 20,
                   offset: PageOffset = 0) -> CapturePage:
     query = select(Capture).where(Capture.state == "ready")

@@ -9,12 +9,13 @@ from sqlalchemy import text
 
 from app.api.deps import GatewayDep
 from app.core.context import Gateway
+from app.core.problems import SERVER_ERROR, problem_responses
 from app.schemas import Health
 
 router = APIRouter(tags=["health"])
 
 
-@router.get("/healthz", response_model=Health)
+@router.get("/healthz", response_model=Health, responses=problem_responses(SERVER_ERROR))
 def healthz() -> Health:
     return Health(status="ok")
 
@@ -40,7 +41,11 @@ def _check(gateway: Gateway) -> dict[str, str]:
     return checks
 
 
-@router.get("/readyz", response_model=Health, responses={503: {"model": Health}})
+# A 503 here is the readiness report itself (Health, application/json), not a problem: probes
+# and people read its `checks`.
+@router.get("/readyz", response_model=Health, responses={
+    503: {"model": Health, "description": "Something it depends on is unreachable."},
+    **problem_responses(SERVER_ERROR)})
 def readyz(gateway: GatewayDep) -> Response:
     checks = _check(gateway)
     ok = all(v == "ok" for v in checks.values())
@@ -49,7 +54,8 @@ def readyz(gateway: GatewayDep) -> Response:
 
 
 @router.get("/metrics", response_class=Response,
-            responses={200: {"content": {CONTENT_TYPE_LATEST: {}}}})
+            responses={200: {"content": {CONTENT_TYPE_LATEST: {"schema": {"type": "string"}}}},
+                       **problem_responses(SERVER_ERROR)})
 def metrics(gateway: GatewayDep) -> Response:
     registry = gateway.metrics.registry
     return Response(generate_latest(registry), media_type=CONTENT_TYPE_LATEST)

@@ -23,7 +23,7 @@ from app.api.deps import (
 )
 from app.api.pagination import PageLimit, PageOffset, fetch_page
 from app.core.context import Gateway
-from app.core.problems import ProblemError
+from app.core.problems import BODY, OPTIONAL_AUTH, READ, WRITE, ProblemError, problem_responses
 from app.schemas import API_PREFIX, ID_PATTERN, JobCreate, JobPage, JobPublic, JobState
 from workers.celery_app import QUEUE_CPU, TASK_STAGE
 from workers.models import TERMINAL_STATES, Capture, Job, Rig, new_id, utcnow
@@ -33,6 +33,19 @@ router = APIRouter(prefix="/jobs", tags=["jobs"])
 JobId = Annotated[str, Path(pattern=ID_PATTERN, description="A job id.")]
 EVENT_POLL_S = 0.25
 EVENT_KEEPALIVE_S = 15.0
+_NO_JOB = {404: "There is no such job."}
+# OpenAPI 3.1 reads a text/event-stream schema as one event's: `event: job`, an `id:`, and
+# `data:` holding the job as GET /jobs/{job_id} answers it (keep-alive comments are no events).
+_EVENT_STREAM = {
+    "type": "object",
+    "required": ["event", "data"],
+    "properties": {
+        "event": {"const": "job"},
+        "id": {"type": "string", "description": "The job's updated_at, as a Unix time."},
+        "data": {"type": "string", "contentMediaType": "application/json",
+                 "contentSchema": {"$ref": "#/components/schemas/JobPublic"}},
+    },
+}
 
 
 def _not_found(job_id: str) -> ProblemError:
@@ -97,7 +110,10 @@ def _forget_job(gateway: Gateway, job_id: str) -> None:
 
 @router.post("", status_code=202, response_model=JobPublic,
              summary="Queue a reconstruction (or a calibration)",
-             responses={401: {}, 404: {}, 409: {}, 422: {}, 503: {}})
+             responses=problem_responses(WRITE, BODY, {
+                 404: "There is no such capture or rig.",
+                 409: "The capture is still being validated (`capture-not-ready`).",
+                 503: "The broker or the job store is unreachable; nothing was queued."}))
 def create_job(body: JobCreate, response: Response, gateway: GatewayDep,
                _key: ApiKeyDep) -> JobPublic:
     job = _create(gateway, body)
@@ -105,7 +121,8 @@ def create_job(body: JobCreate, response: Response, gateway: GatewayDep,
     return JobPublic.of(job)
 
 
-@router.get("", response_model=JobPage, summary="List jobs, newest first")
+@router.get("", response_model=JobPage, summary="List jobs, newest first",
+            openapi_extra=OPTIONAL_AUTH, responses=problem_responses(READ))
 def list_jobs(session: SessionDep, _read: ReadAccessDep, limit: PageLimit = 20,
               offset: PageOffset = 0, state: JobState | None = None,
               capture_id: Annotated[str | None, Query(pattern=ID_PATTERN)] = None) -> JobPage:
@@ -122,7 +139,8 @@ def list_jobs(session: SessionDep, _read: ReadAccessDep, limit: PageLimit = 20,
 _JOB_BY_ID = select(Job.__table__).where(Job.__table__.c.id == bindparam("job_id"))
 
 
-@router.get("/{job_id}", response_model=JobPublic, responses={404: {}})
+@router.get("/{job_id}", response_model=JobPublic, openapi_extra=OPTIONAL_AUTH,
+            responses=problem_responses(READ, _NO_JOB))
 async def get_job(job_id: JobId, request: Request, gateway: GatewayDep,
                   credentials: BearerDep) -> Response:
     # The hottest endpoint (clients poll it), kept lean: no thread hop (the primary-key read
@@ -137,8 +155,9 @@ async def get_job(job_id: JobId, request: Request, gateway: GatewayDep,
     return Response(JobPublic.of(row).model_dump_json(), media_type="application/json")
 
 
-@router.delete("/{job_id}", response_model=JobPublic, responses={404: {}, 409: {}},
-               summary="Cancel a job")
+@router.delete("/{job_id}", response_model=JobPublic, summary="Cancel a job",
+               responses=problem_responses(WRITE, _NO_JOB, {
+                   409: "The job has already succeeded or failed (`job-finished`)."}))
 def cancel_job(job_id: JobId, gateway: GatewayDep, _key: ApiKeyDep) -> JobPublic:
     """Stops the job: a queued stage never starts, a running one stops at its next progress
     report (or at its end); artifacts already computed are kept for later jobs."""
@@ -187,11 +206,11 @@ async def _events(request: Request, gateway: Gateway, first: JobPublic) -> Async
 
 
 @router.get("/{job_id}/events", summary="Job progress as server-sent events",
-            response_class=StreamingResponse, responses={
-                200: {"content": {"text/event-stream": {"schema": {"type": "string"}}},
+            response_class=StreamingResponse, openapi_extra=OPTIONAL_AUTH, responses={
+                200: {"content": {"text/event-stream": {"schema": _EVENT_STREAM}},
                       "description": "`event: job` with the job as JSON on every change; the "
                                      "stream ends once the job has finished."},
-                404: {}})
+                **problem_responses(READ, _NO_JOB)})
 async def job_events(job_id: JobId, request: Request, gateway: GatewayDep,
                      _read: ReadAccessDep) -> StreamingResponse:
     first = await run_in_threadpool(_snapshot, gateway, job_id)

@@ -14,12 +14,13 @@ from sqlalchemy import select
 
 from app.api.deps import ApiKeyDep, ReadAccessDep, SessionDep
 from app.api.pagination import PageLimit, PageOffset, fetch_page
-from app.core.problems import ProblemError
+from app.core.problems import BODY, OPTIONAL_AUTH, READ, WRITE, ProblemError, problem_responses
 from app.schemas import API_PREFIX, ID_PATTERN, RigCreate, RigPage, RigPublic
 from workers.models import Rig, new_id
 
 router = APIRouter(prefix="/rigs", tags=["rigs"])
 
+_NO_RIG = {404: "There is no such rig."}
 RigId = Annotated[str, Path(pattern=ID_PATTERN, description="A rig id.")]
 
 
@@ -33,7 +34,10 @@ def find_rig(session: SessionDep, rig_id: str) -> Rig:
 
 
 @router.post("", status_code=201, response_model=RigPublic, summary="Save a rig file",
-             responses={401: {}, 422: {}})
+             responses=problem_responses(WRITE, BODY, {
+                 422: "A bad body: the detail names the camera and why when a pose is not a "
+                      "finite 4x4 rigid transform or a camera id is malformed "
+                      "(`validation-error`)."}))
 def create_rig(body: RigCreate, response: Response, session: SessionDep,
                _key: ApiKeyDep) -> RigPublic:
     row = Rig(id=new_id(), name=body.name, cameras=sorted(body.world_from_depth),
@@ -44,7 +48,8 @@ def create_rig(body: RigCreate, response: Response, session: SessionDep,
     return RigPublic.of(row)
 
 
-@router.get("", response_model=RigPage, summary="List rigs, newest first")
+@router.get("", response_model=RigPage, summary="List rigs, newest first",
+            openapi_extra=OPTIONAL_AUTH, responses=problem_responses(READ))
 def list_rigs(session: SessionDep, _read: ReadAccessDep, limit: PageLimit = 20,
               offset: PageOffset = 0,
               name: Annotated[str | None, Query(min_length=1, max_length=100)] = None
@@ -57,13 +62,16 @@ def list_rigs(session: SessionDep, _read: ReadAccessDep, limit: PageLimit = 20,
                    offset=offset)
 
 
-@router.get("/{rig_id}", response_model=RigPublic, responses={404: {}})
+@router.get("/{rig_id}", response_model=RigPublic, openapi_extra=OPTIONAL_AUTH,
+            responses=problem_responses(READ, _NO_RIG))
 def get_rig(rig_id: RigId, session: SessionDep, _read: ReadAccessDep) -> RigPublic:
     return RigPublic.of(find_rig(session, rig_id))
 
 
 @router.get("/{rig_id}/rig.json", summary="The rig file, as `volumesh calibrate` writes it",
-            responses={200: {"content": {"application/json": {}}}, 404: {}})
+            openapi_extra=OPTIONAL_AUTH,
+            responses={200: {"content": {"application/json": {"schema": {"type": "object"}}}},
+                       **problem_responses(READ, _NO_RIG)})
 def get_rig_file(rig_id: RigId, session: SessionDep, _read: ReadAccessDep) -> JSONResponse:
     row = find_rig(session, rig_id)
     return JSONResponse(row.document, headers={
