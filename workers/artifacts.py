@@ -55,7 +55,7 @@ def load_npz(ctx: WorkerContext, key: str) -> dict[str, np.ndarray]:
     """The arrays stored under ``key`` (through a cached copy when storage is remote)."""
     local = ctx.storage.local_path(key)
     if local is None:
-        local = ctx.settings.cache_dir / ARTIFACTS / key.replace("/", "_")
+        local = _cached_copy(ctx, key)
         if not local.is_file():
             ctx.storage.get_to_path(key, local)
     with np.load(local, allow_pickle=False) as data:
@@ -68,6 +68,11 @@ def load_merged(ctx: WorkerContext, keys: list[str]) -> dict[str, np.ndarray]:
     for key in keys:
         merged.update(load_npz(ctx, key))
     return merged
+
+
+def _cached_copy(ctx: WorkerContext, key: str) -> Path:
+    """Where a worker keeps its copy of a remote output (one flat folder; `/` -> `_`)."""
+    return ctx.settings.cache_dir / ARTIFACTS / key.replace("/", "_")
 
 
 def capture_in_use(ctx: WorkerContext, sha256: str, finished_job_id: str) -> bool:
@@ -88,9 +93,9 @@ def discard_outputs(ctx: WorkerContext, sha256: str, finished_job_id: str) -> in
     its stage then fails and retries, which is the price of not tracking readers per key."""
     if capture_in_use(ctx, sha256, finished_job_id):
         return 0
-    removed = ctx.storage.delete_prefix(f"{ARTIFACTS}/{sha256}/")
-    cached = ctx.settings.cache_dir / ARTIFACTS
-    if cached.is_dir():
-        for copy in cached.glob(f"{ARTIFACTS}_{sha256}_*"):
-            copy.unlink(missing_ok=True)
+    prefix = f"{ARTIFACTS}/{sha256}/"
+    removed = ctx.storage.delete_prefix(prefix)
+    cached = _cached_copy(ctx, prefix)
+    for copy in cached.parent.glob(f"{cached.name}*"):
+        copy.unlink(missing_ok=True)
     return removed

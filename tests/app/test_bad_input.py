@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from tests.app.conftest import Service
+from tests.hostile_captures import pack
 
 PROBLEM = "application/problem+json"
 UNKNOWN_ID = "0123456789abcdef0123456789abcdef"
@@ -25,14 +26,6 @@ UNKNOWN_ID = "0123456789abcdef0123456789abcdef"
 def read_entries(service: Service) -> dict[str, bytes]:
     with zipfile.ZipFile(service.capture_zip) as archive:
         return {name: archive.read(name) for name in archive.namelist()}
-
-
-def pack(entries: dict[str, bytes], method: int = zipfile.ZIP_STORED) -> bytes:
-    buffer = io.BytesIO()
-    with zipfile.ZipFile(buffer, "w", compression=method) as archive:
-        for name, data in entries.items():
-            archive.writestr(name, data)
-    return buffer.getvalue()
 
 
 def with_doc(service: Service, change: Callable[[dict[str, Any]], None]) -> bytes:

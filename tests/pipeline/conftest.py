@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from pipeline.geometry.mesh import TriangleMesh
-from tests.pipeline.spheres import sphere
+from tests.pipeline.meshes import sphere
 
 
 @pytest.fixture

@@ -9,7 +9,7 @@ import pytest
 from typer.testing import CliRunner
 
 from pipeline.io.mesh_io import read_mesh, write_ply
-from tests.pipeline.spheres import sphere
+from tests.pipeline.meshes import sphere
 
 MAIN = "import sys; from app.cli import main; sys.argv[0] = 'volumesh'; main()"
 

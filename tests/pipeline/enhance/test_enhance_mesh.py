@@ -87,7 +87,7 @@ def test_a_method_not_offered_is_named_with_the_three(method: str) -> None:
 def test_a_mesh_with_coordinates_not_finite_is_named(method: str) -> None:
     from dataclasses import replace
 
-    from tests.pipeline.spheres import sphere
+    from tests.pipeline.meshes import sphere
 
     mesh = sphere()
     vertices_m = mesh.vertices_m.copy()
@@ -100,7 +100,7 @@ def test_the_networks_leave_a_clean_mesh_and_enhance_a_noisy_one() -> None:
     from pipeline.enhance.noise_level import noise_to_edge_ratio
     from pipeline.enhance.training.data import noisy_along_normals
     from pipeline.geometry.mesh import mean_edge_length_m
-    from tests.pipeline.spheres import sphere
+    from tests.pipeline.meshes import sphere
 
     clean = sphere(0.5, 40)
     noisy = noisy_along_normals(clean, mean_edge_length_m(clean), np.random.default_rng(0))
@@ -125,7 +125,7 @@ def test_a_negative_noise_gate_is_named() -> None:
 def test_progress_names_every_stage_in_order_and_ends_at_one(method: str) -> None:
     from pipeline.enhance.enhancement import CLASSICAL_STAGE_PROGRESS, STAGE_PROGRESS
     from pipeline.enhance.training.data import noisy_along_normals
-    from tests.pipeline.spheres import sphere
+    from tests.pipeline.meshes import sphere
 
     noisy = noisy_along_normals(sphere(0.5, 24), 0.01, np.random.default_rng(0))
     reported: list[float] = []
@@ -142,7 +142,7 @@ def test_the_view_update_ends_with_the_normal_filter() -> None:
     (`ldm_4_steps_no_normal_filter`): on this sphere the update leaves it little to take."""
     from pipeline.enhance.training.data import noisy_along_normals
     from pipeline.enhance.update.normal_filter import normal_filter
-    from tests.pipeline.spheres import sphere
+    from tests.pipeline.meshes import sphere
 
     # Edges short against the radius, as the filter assumes (2.5 cm on a 0.5 m sphere).
     noisy = noisy_along_normals(sphere(0.5, 64), 0.01, np.random.default_rng(0))
@@ -166,7 +166,7 @@ def test_the_result_depends_on_the_surface_not_on_how_it_is_listed(
         method: str, remesh_iterations: int) -> None:
     from pipeline.enhance.training.data import noisy_along_normals
     from pipeline.geometry.order import MeshOrder, reordered
-    from tests.pipeline.spheres import sphere
+    from tests.pipeline.meshes import sphere
 
     # The stages run in a canonical order of their own (`mesh_order`) and hand back the
     # input's where they keep the faces: so a mesh listed otherwise (vertices, faces, and

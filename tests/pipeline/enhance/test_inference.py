@@ -11,7 +11,7 @@ from pipeline.enhance.inference import run_network
 from pipeline.enhance.models.regressor import RegressorConfig, ResidualUNet
 from pipeline.enhance.render.views import make_views, render_depth, view_directions
 from pipeline.enhance.weights.loading import load_regressor, regressor_to_bytes, weights_to_bytes
-from tests.pipeline.spheres import sphere
+from tests.pipeline.meshes import c2m_rms_m, flat_meets_sharp, sphere
 
 
 @pytest.fixture(scope="module")
@@ -50,26 +50,17 @@ def test_shipped_selector_beats_adaptive_twicing_where_flat_meets_sharp(kind):
     of the adaptive-twicing test (2 cm edges, ±4 cm noise). Such shapes were among its
     training meshes, though not this remesh and noise draw."""
     from pipeline.enhance.inference import selector_presmoothed
-    from pipeline.enhance.metrics import signed_c2m
-    from pipeline.enhance.training.data import (
-        isotropic,
-        noisy_along_normals,
-        procedural_meshes,
-        unit_extent,
-    )
     from pipeline.enhance.weights import shipped_bytes
     from pipeline.enhance.weights.loading import load_selector
     from pipeline.geometry.smoothing import AdaptiveTwicingConfig, adaptive_twicing
 
-    name, mesh = procedural_meshes(np.random.default_rng(0), 5)[kind]
-    clean = isotropic(unit_extent(mesh, name), 0.02)
-    noisy = noisy_along_normals(clean, 0.04, np.random.default_rng(3))
+    clean, noisy = flat_meets_sharp(kind)
     learned = selector_presmoothed(noisy, load_selector(shipped_bytes("selector")),
                                    EnhanceConfig().bounded_noise)
     adaptive = adaptive_twicing(noisy, AdaptiveTwicingConfig())
 
     def rms(m):
-        return float(np.sqrt(np.mean(signed_c2m(m.vertices_m, clean) ** 2)))
+        return c2m_rms_m(m, clean)
 
     assert rms(learned) < 0.97 * rms(adaptive)
     assert np.array_equal(learned.faces, noisy.faces)

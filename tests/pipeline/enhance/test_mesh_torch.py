@@ -14,7 +14,7 @@ from pipeline.enhance.training.data import noisy_along_normals
 from pipeline.geometry.mesh import TriangleMesh, mean_edge_length_m, vertex_normals
 from pipeline.geometry.repair import triangle_angles_deg
 from pipeline.geometry.smoothing import mean_operator
-from tests.pipeline.spheres import sphere
+from tests.pipeline.meshes import sphere
 
 
 def _mesh(resolution: int, kept_share: float, isolated: int, seed: int) -> TriangleMesh:

@@ -10,7 +10,7 @@ from pipeline.enhance.metrics import (
     normal_error_deg,
     signed_c2m,
 )
-from tests.pipeline.spheres import sphere
+from tests.pipeline.meshes import sphere
 
 
 @settings(max_examples=10, deadline=None)

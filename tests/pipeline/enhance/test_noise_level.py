@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from pipeline.enhance.noise_level import noise_to_edge_ratio
 from pipeline.enhance.training.data import noisy_along_normals
 from pipeline.geometry.mesh import TriangleMesh, mean_edge_length_m
-from tests.pipeline.spheres import sphere
+from tests.pipeline.meshes import sphere
 
 SPHERE = sphere(0.5, 40)
 

@@ -19,7 +19,7 @@ from pipeline.enhance.self_check import (
     simulated_copy,
 )
 from pipeline.geometry.mesh import TriangleMesh, vertex_normals
-from tests.pipeline.spheres import sphere
+from tests.pipeline.meshes import sphere
 
 SPHERE = sphere(resolution=12)
 

@@ -15,7 +15,7 @@ from pipeline.enhance.training.data import noisy_along_normals
 from pipeline.geometry.boundary import across_boundary, boundary_half_edges, boundary_offset
 from pipeline.geometry.mesh import TriangleMesh
 from pipeline.geometry.smoothing import mean_operator
-from tests.pipeline.spheres import sphere
+from tests.pipeline.meshes import sphere
 
 HOLD = TwicingBlendConfig(iterations=(10, 60), pilot_iterations=10, feature_rings=(0,))
 FREE = TwicingBlendConfig(iterations=(10, 60), pilot_iterations=10, feature_rings=(0,),

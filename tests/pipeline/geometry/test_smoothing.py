@@ -9,7 +9,7 @@ from pipeline.geometry.smoothing import (
     taubin_smooth,
     twicing_smooth,
 )
-from tests.pipeline.spheres import radial_rms_m, sphere
+from tests.pipeline.meshes import c2m_rms_m, flat_meets_sharp, radial_rms_m, sphere
 
 
 def _radial_std(mesh) -> float:
@@ -83,24 +83,15 @@ def test_twicing_keeps_the_shape_that_laplacian_smoothing_shrinks(noisy_sphere):
 def test_adaptive_twicing_beats_every_fixed_count_where_flat_meets_sharp(kind):
     """A box and a cylinder (flat faces, sharp edges) remeshed to 2 cm edges, noise ±4 cm
     along normals (the benchmark's ratio): no one count suits faces and edges alike."""
-    from pipeline.enhance.metrics import signed_c2m
-    from pipeline.enhance.training.data import (
-        isotropic,
-        noisy_along_normals,
-        procedural_meshes,
-        unit_extent,
-    )
     from pipeline.geometry.smoothing import AdaptiveTwicingConfig, adaptive_twicing
 
-    name, mesh = procedural_meshes(np.random.default_rng(0), 5)[kind]
-    clean = isotropic(unit_extent(mesh, name), 0.02)
-    noisy = noisy_along_normals(clean, 0.04, np.random.default_rng(3))
+    clean, noisy = flat_meets_sharp(kind)
     config = AdaptiveTwicingConfig()
     adaptive = adaptive_twicing(noisy, config)
     counts = [twicing_smooth(noisy, k) for k in config.iterations]
 
     def rms(m):
-        return float(np.sqrt(np.mean(signed_c2m(m.vertices_m, clean) ** 2)))
+        return c2m_rms_m(m, clean)
 
     assert rms(adaptive) < 0.97 * min(rms(m) for m in counts)
     # Each vertex comes from one of the candidate counts, and more than one count is used.

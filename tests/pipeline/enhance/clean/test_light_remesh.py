@@ -10,7 +10,7 @@ import pytest
 from pipeline.enhance import EnhanceConfig, enhance_mesh
 from pipeline.geometry.mesh import TriangleMesh
 from pipeline.geometry.repair import triangle_angles_deg
-from tests.pipeline.spheres import radial_rms_m
+from tests.pipeline.meshes import radial_rms_m
 
 
 def _sliver_share(mesh: TriangleMesh) -> float:
@@ -82,7 +82,7 @@ def test_the_light_remesh_gives_one_mesh_whatever_the_rounding(seed: int) -> Non
     last bits: moved by about 1e-15 m (a GPU's float64 sums against the host's), it must
     still give the same mesh."""
     from pipeline.enhance.clean.light_remesh import light_remesh
-    from tests.pipeline.spheres import sphere
+    from tests.pipeline.meshes import sphere
 
     mesh = sphere()
     moved = replace(mesh, vertices_m=mesh.vertices_m + 1e-15 * np.random.default_rng(seed)

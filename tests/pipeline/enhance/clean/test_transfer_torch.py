@@ -9,7 +9,7 @@ import torch
 from pipeline.enhance.clean.transfer_torch import carried_on
 from pipeline.enhance.training.data import noisy_along_normals
 from pipeline.reconstruct.remesh.speculative import carried_with_angles
-from tests.pipeline.spheres import sphere
+from tests.pipeline.meshes import sphere
 
 
 def _carry_inputs(seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

@@ -17,7 +17,7 @@ from pipeline.enhance.training.data import noisy_along_normals
 from pipeline.geometry.mesh import TriangleMesh
 from pipeline.geometry.smoothing import twicing_smooth
 from tests.pipeline.geometry.test_boundary import grid
-from tests.pipeline.spheres import radial_rms_m, sphere
+from tests.pipeline.meshes import radial_rms_m, sphere
 
 SEEDS = st.integers(0, 2**31 - 1)
 

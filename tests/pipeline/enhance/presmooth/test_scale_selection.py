@@ -11,7 +11,7 @@ from pipeline.enhance.presmooth.scale_selection import (
 )
 from pipeline.enhance.training.data import noisy_along_normals
 from pipeline.geometry.smoothing import twicing_smooth
-from tests.pipeline.spheres import sphere
+from tests.pipeline.meshes import sphere
 
 SMALL = TwicingBlendConfig(iterations=(2, 5, 10), pilot_iterations=5, feature_rings=(0, 3))
 

@@ -45,7 +45,7 @@ def test_sphere_depth_matches_geometry(unit_sphere):
 @settings(max_examples=15, deadline=None)
 @given(st.integers(0, 5), st.floats(0.05, 20.0))
 def test_rendered_hits_project_back_to_their_pixel(view, scale):
-    from tests.pipeline.spheres import sphere
+    from tests.pipeline.meshes import sphere
 
     mesh = sphere(0.5 * scale, 16)
     views = make_views(mesh.vertices_m, view_directions(6), 32)
@@ -115,7 +115,7 @@ def _assert_agrees(ray_cast, rasterized, max_disagreeing=0.002):
 
 def _open_bowl():
     """A sphere with its cap above z = 0.2 cut off: an open boundary, inside faces visible."""
-    from tests.pipeline.spheres import sphere
+    from tests.pipeline.meshes import sphere
 
     whole = sphere(0.5, 20)
     keep = whole.vertices_m[whole.faces].mean(axis=1)[:, 2] < 0.2
@@ -145,7 +145,7 @@ def test_rasterizer_matches_ray_cast_on_open_boundary():
 
 
 def test_rasterizer_drops_what_lies_before_the_near_plane():
-    from tests.pipeline.spheres import sphere
+    from tests.pipeline.meshes import sphere
 
     # Views fitted to a smaller sphere: the larger one crosses every near plane, so the
     # rays (and the rasterizer) see its inside through the cut.

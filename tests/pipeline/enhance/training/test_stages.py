@@ -24,7 +24,7 @@ from pipeline.enhance.training.loop import checkpoint_from_bytes, checkpoint_to_
 from pipeline.enhance.training.stages import train_finetune, train_ldm, train_regressor, train_vae
 from pipeline.enhance.weights.loading import weights_from_bytes, weights_to_bytes
 from tests.pipeline.enhance.depth_pairs import ramp_pairs
-from tests.pipeline.spheres import sphere
+from tests.pipeline.meshes import sphere
 
 TINY = CONFIGS["tiny"]
 

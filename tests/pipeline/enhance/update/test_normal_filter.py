@@ -15,7 +15,7 @@ from pipeline.geometry.mesh import TriangleMesh, face_normals, mean_edge_length_
 from pipeline.geometry.repair import face_areas
 from pipeline.geometry.smoothing import laplacian_smooth
 from tests.pipeline.geometry.test_boundary import grid
-from tests.pipeline.spheres import radial_rms_m, sphere
+from tests.pipeline.meshes import radial_rms_m, sphere
 
 
 def fold(n: int, angle_deg: float, spacing_m: float = 0.01) -> TriangleMesh:

@@ -7,7 +7,7 @@ from pipeline.enhance.render.views import make_views, render_depth, view_directi
 from pipeline.enhance.update.steps import UpdateConfig, update_vertices
 from pipeline.enhance.update.steps_numpy import unfolded
 from pipeline.geometry.mesh import face_normals
-from tests.pipeline.spheres import radial_rms_m, sphere
+from tests.pipeline.meshes import radial_rms_m, sphere
 
 
 def test_clean_depth_pulls_noisy_vertices_onto_the_surface(noisy_sphere):
