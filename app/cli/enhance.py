@@ -8,10 +8,20 @@ from typing import Annotated, Any
 import typer
 
 from app.cli import app
+from pipeline.enhance.config import REMOVED_SETTINGS
 from pipeline.enhance.self_check import SelfCheck
 
-PRESMOOTHING = ("removed; the pre-smoothing is always the selector's blend of twicings (scale "
-                "selection) ended by the midrange estimator")
+_GONE_WITH_SETTING = {
+    "--iterations": "iterations",
+    "--presmooth": "presmooth_iterations",
+    "--presmooth-passes": "presmooth_passes",
+    "--adaptive-presmooth/--fixed-presmooth": "presmooth_adaptive",
+    "--learned-presmooth/--no-learned-presmooth": "presmooth_learned",
+    "--gain": "correction_gain",
+    "--ensemble": "ensemble",
+}
+"""Options that set an enhancement setting jobs may no longer set either: refused with the
+job setting's own line (`REMOVED_SETTINGS`)."""
 REMOVED_OPTIONS = {
     "--views": "removed; enhance-mesh renders the six axis views the networks were trained on "
                "(a job's enhancement.views still sets it)",
@@ -19,20 +29,14 @@ REMOVED_OPTIONS = {
                     "on (a job's enhancement.resolution still sets it)",
     "--strength": "removed; enhance-mesh samples at the strength the LDM was fine-tuned with "
                   "(a job's enhancement.strength still sets it)",
-    "--iterations": "removed; --method classical replaces the smoothers it counted",
-    "--presmooth": PRESMOOTHING,
-    "--presmooth-passes": PRESMOOTHING,
-    "--adaptive-presmooth/--fixed-presmooth": PRESMOOTHING,
-    "--learned-presmooth/--no-learned-presmooth": PRESMOOTHING,
     "--bounded-rings": "removed; the midrange estimator reads the rings it was tuned with",
-    "--gain": "removed; the per-vertex gain network sets each vertex's share",
     "--min-noise-ratio": "removed; the noise gate is the enhancement's own (a mesh less noisy "
                          "than 0.05 of its edge length is written unchanged)",
     "--normal-filter": "removed; the bilateral normal filter ends every method as tuned",
     "--remesh-ahead/--remesh-after": "removed; the speculative remesh runs where the device is "
                                      "a GPU, the remesh after the update on the CPU",
-    "--ensemble": "removed; each view is enhanced once",
-}
+} | {option: f"removed; {REMOVED_SETTINGS[setting]}"
+     for option, setting in _GONE_WITH_SETTING.items()}
 """Options `enhance-mesh` refuses, each with what takes its place: given, they fail with that
 line rather than be silently accepted."""
 

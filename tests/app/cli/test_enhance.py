@@ -86,7 +86,7 @@ def test_a_removed_option_is_one_line_and_exit_2(tmp_path):
                           capture_output=True, text=True)
     assert proc.returncode == 2
     assert proc.stderr.strip() == ("volumesh: error: --gain: removed; the per-vertex gain "
-                                   "network sets each vertex's share")
+                                   "network sets each vertex's share of the correction")
 
 
 def test_a_weights_folder_carries_its_gain_networks(tmp_path):
