@@ -13,9 +13,12 @@ from fastapi.middleware.cors import CORSMiddleware
 
 from app.api.routes import assets, captures, health, jobs, rigs
 from app.core import problems
+from app.core.capture_store import sweep_abandoned
 from app.core.context import Gateway
+from app.core.leases import sweep_leases
 from app.core.limits import BodyLimitMiddleware
 from app.core.metrics import MetricsMiddleware
+from app.core.retention import sweep_retention
 from app.core.uploads import (
     BodyIdleTimeoutMiddleware,
     clean_stale_uploads,
@@ -63,12 +66,16 @@ def create_app(settings: Settings | None = None, *, viewer: bool = True) -> Fast
         removed = clean_stale_uploads(settings.tmp_dir, settings.stale_upload_s)
         if removed:
             log.info("removed %d partial uploads left by a stopped gateway", removed)
-        sweeper = asyncio.create_task(sweep_stale_uploads(settings.tmp_dir,
-                                                          settings.stale_upload_s))
+        sweepers = [asyncio.create_task(sweep_stale_uploads(settings.tmp_dir,
+                                                            settings.stale_upload_s)),
+                    asyncio.create_task(sweep_leases(gateway)),
+                    asyncio.create_task(sweep_retention(gateway)),
+                    asyncio.create_task(sweep_abandoned(gateway))]
         yield
-        sweeper.cancel()
-        with contextlib.suppress(asyncio.CancelledError):
-            await sweeper
+        for sweeper in sweepers:
+            sweeper.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await sweeper
         gateway.close()
 
     app = FastAPI(title="volumesh", version="0.1.0", description=DESCRIPTION,

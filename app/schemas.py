@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import re
+from collections.abc import Callable
 from datetime import UTC, datetime
 from typing import Any, Literal
 
@@ -11,6 +12,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from app.core.stage_settings import check_settings, stage_settings
 from workers.models import Asset, Capture, Job, Rig
+from workers.presence import waiting_reason
 
 API_PREFIX = "/api/v1"
 ID_PATTERN = r"^[0-9a-f]{32}$"
@@ -195,10 +197,15 @@ class JobPublic(BaseModel):
     started_at: datetime | None = Field(description="When a worker started the first stage.")
     finished_at: datetime | None
     links: dict[str, str] = Field(description="URLs of this job, its events and its results.")
+    waiting_reason: str | None = Field(
+        default=None, description="Why the job waits, when no live worker consumes the queue "
+        "its next stage waits on (e.g. no worker consumes the 'gpu' queue); else null.")
 
     @classmethod
-    def of(cls, row: Job | Any) -> JobPublic:
-        """From an ORM row or a Core result row of the jobs table."""
+    def of(cls, row: Job | Any,
+           consumed_queues: Callable[[], frozenset[str]] | None = None) -> JobPublic:
+        """From an ORM row or a Core result row of the jobs table; with ``consumed_queues``
+        (called only for a job that waits) it says why the job waits, if it waits in vain."""
         links = {"self": f"{API_PREFIX}/jobs/{row.id}",
                  "events": f"{API_PREFIX}/jobs/{row.id}/events",
                  "capture": f"{API_PREFIX}/captures/{row.capture_id}"}
@@ -217,7 +224,8 @@ class JobPublic(BaseModel):
                    asset_id=row.asset_id, options=dict(row.options or {}),
                    created_at=_utc(row.created_at), updated_at=_utc(row.updated_at),
                    started_at=_utc(row.started_at), finished_at=_utc(row.finished_at),
-                   links=links)
+                   links=links, waiting_reason=None if consumed_queues is None else
+                   waiting_reason(row, consumed_queues))
 
 
 class JobPage(BaseModel):
@@ -248,11 +256,34 @@ class AssetPublic(BaseModel):
     created_at: datetime | None
 
     @classmethod
-    def of(cls, row: Asset) -> AssetPublic:
-        files = {name: AssetFile(url=f"{API_PREFIX}/assets/{row.id}/{name}", bytes=f["bytes"],
-                                 sha256=f["sha256"], content_type=f["content_type"])
+    def of(cls, row: Asset, share: str | None = None) -> AssetPublic:
+        """The asset; read through a share link, its file URLs carry the same ``share``."""
+        query = "" if share is None else f"?share={share}"
+        files = {name: AssetFile(url=f"{API_PREFIX}/assets/{row.id}/{name}{query}",
+                                 bytes=f["bytes"], sha256=f["sha256"],
+                                 content_type=f["content_type"])
                  for name, f in (row.files or {}).items()}
         return cls(id=row.id, job_id=row.job_id, files=files, created_at=_utc(row.created_at))
+
+
+SHARE_MAX_S = 30 * 24 * 3600
+
+
+class AssetShareCreate(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    expires_in_s: int = Field(default=7 * 24 * 3600, ge=60, le=SHARE_MAX_S,
+                              description="How long the link works, seconds (1 minute to 30 "
+                                          "days; default 7 days).")
+
+
+class AssetSharePublic(BaseModel):
+    asset_id: str
+    share: str = Field(description="The token: add `?share=TOKEN` to the asset's URLs to read "
+                                   "them with no API key.")
+    expires_at: datetime
+    viewer_url: str = Field(description="The viewer showing the asset, for anyone with the link.")
+    files: dict[str, str] = Field(description="File name -> its URL with the token.")
 
 
 class RigCreate(BaseModel):

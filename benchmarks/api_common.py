@@ -73,11 +73,12 @@ def percentile(values: list[float], q: float) -> float:
     return ordered[min(len(ordered) - 1, int(round(q * (len(ordered) - 1))))]
 
 
-async def _client(port: int, path: str, deadline: float, latencies: list[float],
+async def _client(port: int, path: str, key: str, deadline: float, latencies: list[float],
                   statuses: dict[int, int], interval_s: float | None = None,
                   offset_s: float = 0.0) -> None:
     reader, writer = await asyncio.open_connection("127.0.0.1", port)
-    request = f"GET {path} HTTP/1.1\r\nHost: bench\r\n\r\n".encode()
+    request = (f"GET {path} HTTP/1.1\r\nHost: bench\r\nAuthorization: Bearer {key}\r\n\r\n"
+               .encode())
     scheduled = time.perf_counter() + offset_s
     try:
         while time.perf_counter() < deadline:
@@ -102,10 +103,11 @@ async def _client(port: int, path: str, deadline: float, latencies: list[float],
         writer.close()
 
 
-def load(port: int, path: str, clients: int, seconds: float, rate_per_s: float | None = None
-         ) -> tuple[list[float], dict[int, int]]:
-    """``clients`` keep-alive connections each sending GET ``path``: back to back, or together
-    at ``rate_per_s`` requests per second (each client paced, start times staggered)."""
+def load(port: int, path: str, key: str, clients: int, seconds: float,
+         rate_per_s: float | None = None) -> tuple[list[float], dict[int, int]]:
+    """``clients`` keep-alive connections each sending GET ``path`` with the API key ``key``:
+    back to back, or together at ``rate_per_s`` requests per second (each client paced, start
+    times staggered)."""
     latencies: list[float] = []
     statuses: dict[int, int] = {}
     interval_s = None if rate_per_s is None else clients / rate_per_s
@@ -113,7 +115,7 @@ def load(port: int, path: str, clients: int, seconds: float, rate_per_s: float |
     async def run() -> None:
         deadline = time.perf_counter() + seconds
         await asyncio.gather(*(
-            _client(port, path, deadline, latencies, statuses, interval_s,
+            _client(port, path, key, deadline, latencies, statuses, interval_s,
                     0.0 if interval_s is None else interval_s * i / clients)
             for i in range(clients)))
 

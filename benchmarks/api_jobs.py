@@ -1,4 +1,5 @@
-"""GET /api/v1/jobs/{id} under load: requests/s and latency with 50 concurrent clients.
+"""GET /api/v1/jobs/{id} under load: requests/s and latency with 50 concurrent clients, each
+request with its API key (checked, and the job's owner compared, on every request).
 
 Target: >= 500 requests/s with p99 <= 50 ms on two cores. Two runs: the clients back to back
 (the most the gateway serves; latency is then set by queueing, concurrency / throughput), and the
@@ -34,25 +35,30 @@ from benchmarks.api_common import (  # noqa: E402
 )
 
 
-def _seed_job(settings: dict[str, str]) -> str:
-    """A capture and a running job in the store, as a worker would leave them mid-job."""
+def _seed_job(settings: dict[str, str]) -> tuple[str, str]:
+    """A key, and a capture and a running job of its owner in the store, as a worker would
+    leave them mid-job; returns (job id, key)."""
+    from app.core.security import create_key, owner_of
     from workers.db import init_db, make_engine, make_sessionmaker
     from workers.models import Capture, Job
     from workers.settings import Settings
 
     engine = make_engine(Settings.model_validate(settings))
     init_db(engine)
+    with make_sessionmaker(engine)() as session:
+        row, key = create_key(session, "bench")
     with make_sessionmaker(engine).begin() as session:
         session.add(Capture(id="c" * 32, sha256="c" * 64, size_bytes=1, storage_key="k",
                             state="ready", cameras=8, frames=1))
-        session.add(Job(id="a" * 32, capture_id="c" * 32, state="running", stage="mesh",
+        session.add(Job(id="a" * 32, capture_id="c" * 32, owner=owner_of(row.id, None),
+                        state="running", stage="mesh",
                         stage_index=4, done_count=4, progress=0.55,
                         stages=["filter", "align", "register", "refine", "mesh", "remesh",
                                 "colorize", "export"],
                         stage_timings={"filter": 0.5, "align": 0.4, "register": 0.9,
                                        "refine": 0.3}, options={"enhance": False}))
     engine.dispose()
-    return "a" * 32
+    return "a" * 32, key
 
 
 def main() -> None:
@@ -67,21 +73,22 @@ def main() -> None:
         settings = {"data_dir": tmp}
         if args.database_url:
             settings["database_url"] = args.database_url
-        job_id = _seed_job(settings)
+        job_id, key = _seed_job(settings)
         port = free_port()
         with process(gateway_cmd(port, args.workers), service_env(**settings),
                      Path(tmp) / "gateway.log") as gateway:
             wait_http(port)
             path = f"/api/v1/jobs/{job_id}"
-            load(port, path, args.clients, 2.0)  # warm-up: connections, caches
+            load(port, path, key, args.clients, 2.0)  # warm-up: connections, caches
             pids = process_tree(gateway.pid)
             load_before, cpu_before = load_average(), cpu_seconds(pids)
             started = time.perf_counter()
-            latencies, statuses = load(port, path, args.clients, args.seconds)
+            latencies, statuses = load(port, path, key, args.clients, args.seconds)
             elapsed = time.perf_counter() - started
             cpu_used = cpu_seconds(pids) - cpu_before
             paced_started = time.perf_counter()
-            paced, paced_statuses = load(port, path, args.clients, args.seconds, args.rate)
+            paced, paced_statuses = load(port, path, key, args.clients, args.seconds,
+                                         args.rate)
             paced_elapsed = time.perf_counter() - paced_started
     result = {
         "benchmark": "GET /api/v1/jobs/{id}",

@@ -20,8 +20,7 @@ from workers.context import WorkerContext
 from workers.jobstore import LIVE
 from workers.models import Capture, Job
 from workers.plan import stage_keys, work_stages
-
-ARTIFACTS = "artifacts"
+from workers.storage import ARTIFACTS
 
 
 def artifact_key(sha256: str, index: int, stage: str, chain: str) -> str:

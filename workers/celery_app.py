@@ -50,7 +50,8 @@ def _embedded_broker(settings: Settings) -> tuple[str, dict[str, Any]]:
 
 def _redis_options(settings: Settings) -> dict[str, Any]:
     return {
-        # A task whose worker died (SIGKILL, lost machine) goes back to the queue after this.
+        # A task whose worker died goes back to the queue after this: a backstop, as the
+        # stage's lapsed lease has it queued again long before (workers.leases).
         "visibility_timeout": settings.visibility_timeout_s,
         "unacked_restore_interval": max(1, min(10, settings.visibility_timeout_s // 4)),
         "unacked_restore_throttle": 1,

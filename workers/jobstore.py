@@ -7,11 +7,13 @@ a worker died, a task of a cancelled job) changes nothing.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from datetime import timedelta
 from typing import Any
 
-from sqlalchemy import CursorResult, update
+from sqlalchemy import CursorResult, case, update
 from sqlalchemy.orm import Session, sessionmaker
 
+from workers.leases import lease_free, new_owner
 from workers.models import Asset, Capture, Job, Rig, utcnow
 
 LIVE = ("queued", "running")
@@ -59,15 +61,24 @@ class JobStore:
                 job.stages = stages
             return tuple(job.stages)
 
-    def start_stage(self, job_id: str, index: int, name: str, task_id: str | None) -> bool:
-        """Mark the stage running; False when the job is over or the stage already done."""
+    def start_stage(self, job_id: str, index: int, name: str, task_id: str | None,
+                    owner: str | None = None, lease_s: float = 30.0) -> bool:
+        """Mark the stage running under ``owner``'s lease for ``lease_s`` (`workers.leases`);
+        False when the job is over, the stage already done, or another delivery holds its
+        lease (live, or lapsed and left to the gateway's sweep)."""
         now = utcnow()
+        owner = owner or new_owner()
         with self.sessions.begin() as session:
             result: CursorResult[Any] = session.execute(  # type: ignore[assignment]
                 update(Job)
-                .where(Job.id == job_id, Job.state.in_(LIVE), Job.done_count <= index)
+                .where(Job.id == job_id, Job.state.in_(LIVE), Job.done_count <= index,
+                       lease_free(index, owner))
                 .values(state="running", stage=name, stage_index=index, task_id=task_id,
-                        updated_at=now))
+                        updated_at=now, lease_owner=owner,
+                        lease_expires_at=now + timedelta(seconds=lease_s),
+                        # lapses count per stage: a new stage starts with none
+                        lease_lapses=case((Job.stage_index == index, Job.lease_lapses),
+                                          else_=None)))
             if result.rowcount:
                 session.execute(update(Job).where(Job.id == job_id, Job.started_at.is_(None))
                                 .values(started_at=now))
@@ -141,6 +152,8 @@ class JobStore:
         """Save (or, on a redelivery, overwrite) the rig a calibration found."""
         with self.sessions.begin() as session:
             row = session.get(Rig, rig_id) or Rig(id=rig_id)
+            job = session.get(Job, rig_id)  # the calibrating job: its owner owns the rig
+            row.owner = None if job is None else job.owner
             row.name, row.document, row.source = name, document, "calibration"
             row.cameras = sorted(document["world_from_depth"])
             row.calibration_capture_id = calibration_capture_id

@@ -6,7 +6,7 @@ import uuid
 from datetime import UTC, datetime
 from typing import Any
 
-from sqlalchemy import JSON, DateTime, Float, ForeignKey, Integer, String, Text
+from sqlalchemy import JSON, Boolean, DateTime, Float, ForeignKey, Integer, String, Text
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 
 JOB_STATES = ("queued", "running", "succeeded", "failed", "cancelled")
@@ -37,6 +37,20 @@ class ApiKey(Base):
     key_hash: Mapped[str] = mapped_column(String(64), unique=True, index=True)
     created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
     revoked_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True), default=None)
+    project: Mapped[str | None] = mapped_column(String(100), default=None)
+    """Keys of one project share what they make; unset: the key owns its work alone."""
+    admin: Mapped[bool | None] = mapped_column(Boolean, default=False)
+    """An admin key sees and acts on everything, and reads /metrics."""
+
+
+class ServiceSecret(Base):
+    """A random secret the gateways share through the job store (it signs asset share links)."""
+
+    __tablename__ = "service_secrets"
+
+    name: Mapped[str] = mapped_column(String(40), primary_key=True)
+    value: Mapped[str] = mapped_column(String(128))
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
 
 
 class Capture(Base):
@@ -56,6 +70,19 @@ class Capture(Base):
     created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
 
 
+class CaptureGrant(Base):
+    """Who may use a capture. A capture is stored once per content, so an owner who uploads
+    the same bytes as another is granted the same capture, and sees nothing of the other."""
+
+    __tablename__ = "capture_grants"
+
+    capture_id: Mapped[str] = mapped_column(ForeignKey("captures.id", ondelete="CASCADE"),
+                                            primary_key=True)
+    owner: Mapped[str] = mapped_column(String(120), primary_key=True, index=True)
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow,
+                                                 index=True)
+
+
 class Job(Base):
     """One reconstruction of a capture; workers advance it stage by stage."""
 
@@ -63,6 +90,8 @@ class Job(Base):
 
     id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
     capture_id: Mapped[str] = mapped_column(ForeignKey("captures.id"), index=True)
+    owner: Mapped[str | None] = mapped_column(String(120), default=None, index=True)
+    """Who owns it (and its asset): ``project:NAME`` for a key of a project, else ``key:ID``."""
     state: Mapped[str] = mapped_column(String(16), default="queued", index=True)
     stage: Mapped[str | None] = mapped_column(String(40), default=None)
     stage_index: Mapped[int] = mapped_column(Integer, default=0)
@@ -86,6 +115,31 @@ class Job(Base):
     started_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True), default=None)
     """When a worker started the job's first stage."""
     finished_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True), default=None)
+    lease_owner: Mapped[str | None] = mapped_column(String(128), default=None)
+    """Who runs the stage at ``stage_index`` (one delivery of its task in one worker process);
+    unset when no stage runs (`workers.leases`)."""
+    lease_expires_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True),
+                                                              default=None)
+    """When the lease lapses unless its worker renews it; past it, the gateway queues the
+    stage again."""
+    lease_lapses: Mapped[int | None] = mapped_column(Integer, default=None)
+    """Tries of the stage at ``stage_index`` whose worker stopped answering (lease lapsed);
+    at ``stage_max_tries`` the job fails. Unset: none."""
+
+
+class WorkerSeen(Base):
+    """A live worker process: what it consumes and when it last said so (`workers.presence`)."""
+
+    __tablename__ = "workers"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
+    hostname: Mapped[str] = mapped_column(String(200))
+    """The Celery node name (``name@host``)."""
+    pid: Mapped[int] = mapped_column(Integer)
+    queues: Mapped[list[str]] = mapped_column(JSON, default=list)
+    started_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+    last_seen: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow,
+                                                index=True)
 
 
 class Asset(Base):
@@ -107,6 +161,8 @@ class Rig(Base):
 
     id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
     name: Mapped[str | None] = mapped_column(String(100), default=None, index=True)
+    owner: Mapped[str | None] = mapped_column(String(120), default=None, index=True)
+    """The owner of the key that uploaded it, or of the job that calibrated it."""
     cameras: Mapped[list[str]] = mapped_column(JSON, default=list)
     document: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
     """The rig.json document: format, world_from_depth and the calibration's report."""

@@ -1,7 +1,9 @@
-"""Picking unfinished jobs up again after the embedded worker restarted.
+"""Picking up, when the embedded service starts, the jobs whose task message may be lost.
 
-The embedded file-system broker forgets a task whose worker died while running it; on start,
-``volumesh serve`` therefore queues every unfinished job again at its current stage. Duplicate
+The embedded file-system broker forgets a task that a worker had taken when that worker died.
+A stage that was running holds a lease, and the gateway's sweep queues it again once the lease
+lapses (`workers.leases`); a job holding no lease (queued, or between two stages) has no such
+keeper, so ``volumesh serve`` queues each one again at its next stage on start. Duplicate
 deliveries are harmless (a stage already counted is skipped; stored outputs are reused).
 """
 
@@ -11,18 +13,20 @@ from sqlalchemy import select
 
 from workers.celery_app import TASK_STAGE, make_celery, queue_for_stage
 from workers.db import init_db, make_engine, make_sessionmaker
+from workers.leases import LIVE
 from workers.models import Job
 from workers.settings import Settings
 
 
 def requeue_unfinished(settings: Settings) -> list[str]:
-    """Queue the next stage of every queued or running job; returns their ids."""
+    """Queue the next stage of every queued or running job that holds no lease; returns their
+    ids."""
     engine = make_engine(settings)
     init_db(engine)
     sessions = make_sessionmaker(engine)
     with sessions() as session:
         rows = list(session.execute(select(Job.id, Job.done_count, Job.stages)
-                                    .where(Job.state.in_(("queued", "running")))))
+                                    .where(Job.state.in_(LIVE), Job.lease_owner.is_(None))))
     engine.dispose()
     if not rows:
         return []

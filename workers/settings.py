@@ -46,8 +46,9 @@ class Settings(BaseSettings):
     s3_secret_access_key: SecretStr | None = None
     """Secret access key for the S3 store (kept out of logs and reprs)."""
 
-    require_auth_for_reads: bool = False
-    """When true, GET requests also need ``Authorization: Bearer <api key>``."""
+    metrics_token: SecretStr | None = None
+    """A token that reads ``/metrics`` alone (``Authorization: Bearer <token>``, as a Prometheus
+    scrape config sends it); admin API keys read it too, and nothing else does."""
     cors_origins: Annotated[list[str], NoDecode] = Field(default_factory=list)
     """Origins allowed by CORS, comma separated in the environment; ``*`` allows any."""
 
@@ -68,6 +69,10 @@ class Settings(BaseSettings):
     stale_upload_s: float = Field(default=600.0, gt=0)
     """A partial upload untouched this long is from a gateway that died; the gateway deletes
     it while running (checked every ``stale_upload_s / 4``, at most every minute)."""
+    retention_days: float | None = Field(default=None, gt=0)
+    """Finished jobs and their assets are deleted this many days after they finished, and a
+    capture once it is this old and no job refers to it (the gateway checks hourly); unset:
+    everything is kept."""
     upload_idle_timeout_s: float = Field(default=30.0, gt=0)
     """A request body that sends no bytes for this long is answered 408 and dropped (an upload's
     partial file deleted), so a stalled client cannot hold a request open for good."""
@@ -79,8 +84,9 @@ class Settings(BaseSettings):
     task_time_limit_s: int = Field(default=3600, gt=0)
     """A stage running longer is killed."""
     visibility_timeout_s: int = Field(default=4000, gt=0)
-    """Redis: an unacknowledged task is handed to another worker after this long (a worker
-    died); keep it above ``task_time_limit_s``."""
+    """Redis: an unacknowledged task is handed to another worker after this long; a backstop,
+    as leases queue a dead worker's stage again within about ``stage_lease_s``. Keep it above
+    ``task_time_limit_s``."""
     task_max_retries: int = Field(default=5, ge=0)
     """Retries (with exponential back-off) of a stage that hit a transient error."""
     worker_concurrency: int = Field(default=1, gt=0)
@@ -91,6 +97,23 @@ class Settings(BaseSettings):
     """Embedded file-system broker: how often an idle worker looks for a task."""
     progress_interval_s: float = Field(default=0.25, ge=0)
     """Least time between two progress writes of a stage to the job store."""
+    stage_lease_s: float = Field(default=30.0, gt=0)
+    """A running stage's lease: its worker renews it every ``stage_lease_s / 3``; a stage whose
+    lease lapsed (worker killed, out of memory, machine lost) is queued again by the gateway,
+    which looks every ``stage_lease_s / 6`` (at most every 5 s). Workers' and gateways' clocks
+    must agree to well within it (NTP)."""
+    stage_max_tries: int = Field(default=3, ge=1)
+    """A stage whose worker stops answering this many times (its lease lapsed each time) fails
+    the job, saying so."""
+    worker_heartbeat_s: float = Field(default=5.0, gt=0)
+    """How often a worker records that it is alive and which queues it consumes; one silent for
+    three times this long counts as gone (a job waiting on its queue says so, /readyz is 503)."""
+
+    @field_validator("metrics_token", mode="before")
+    @classmethod
+    def _empty_is_unset(cls, value: object) -> object:
+        # docker-compose passes an unset variable as an empty one.
+        return None if value == "" else value
 
     @field_validator("cors_origins", mode="before")
     @classmethod

@@ -17,10 +17,13 @@ from typing import Any, Protocol
 from workers.settings import Settings
 
 CHUNK_BYTES = 1024 * 1024
+ARTIFACTS = "artifacts"
+"""Prefix of the stage outputs (``artifacts/<capture sha>/...``, `workers.artifacts`)."""
 
 
 class Storage(Protocol):
-    """Objects by key (``captures/<sha>.zip``, ``assets/<id>/mesh.glb``)."""
+    """Objects by key (``captures/<sha>-<n>.zip``, ``artifacts/<sha>/...``,
+    ``assets/<id>/mesh.glb``)."""
 
     def put_file(self, key: str, path: Path, *, move: bool = False) -> None:
         """Store the file at ``path`` under ``key`` atomically; ``move`` may consume it."""

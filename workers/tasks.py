@@ -12,8 +12,9 @@ from typing import Any
 
 from celery import Task, shared_task
 from celery.exceptions import SoftTimeLimitExceeded
-from celery.signals import worker_process_init
+from celery.signals import worker_process_init, worker_ready, worker_shutdown
 
+from workers import presence
 from workers.captures import validate_capture
 from workers.celery_app import TASK_STAGE, TASK_VALIDATE
 from workers.context import WorkerContext
@@ -64,6 +65,18 @@ def _prepare_process(**_: Any) -> None:
         import pipeline.stages  # noqa: F401
     except ImportError:
         log.warning("pipeline.stages is missing: stage tasks will fail")
+
+
+@worker_ready.connect
+def _announce(sender: Any, **_: Any) -> None:
+    # The worker's main process records itself and its queues in the job store while it runs,
+    # so the gateway can tell a job that waits on a queue nobody consumes (no broadcast needed).
+    presence.start_announcing(sender)
+
+
+@worker_shutdown.connect
+def _retire(**_: Any) -> None:
+    presence.stop_announcing()
 
 
 def _backoff_s(retries: int) -> float:

@@ -11,8 +11,7 @@ from sqlalchemy.orm import Session
 
 from app.core.context import Gateway
 from app.core.problems import ProblemError
-from app.core.security import find_key
-from workers.models import ApiKey
+from app.core.security import Caller, find_caller
 from workers.settings import Settings
 from workers.storage import Storage
 
@@ -53,30 +52,22 @@ BearerDep = Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]
 _CHALLENGE = {"WWW-Authenticate": 'Bearer realm="volumesh"'}
 
 
-def _authenticate(gateway: Gateway, credentials: HTTPAuthorizationCredentials | None) -> ApiKey:
+def authenticate(gateway: Gateway, credentials: HTTPAuthorizationCredentials | None) -> Caller:
+    """The caller of a request, or a 401 problem (one indexed read, done on the loop)."""
     if credentials is None:
         raise ProblemError(401, "This request needs an API key: send 'Authorization: Bearer "
                            "<key>' (create one with `volumesh keys create --name NAME`).",
                            kind="unauthorized", headers=_CHALLENGE)
-    with gateway.sessions() as session:
-        row = find_key(session, credentials.credentials)
-    if row is None:
+    caller = find_caller(gateway.engine, credentials.credentials)
+    if caller is None:
         raise ProblemError(401, "The API key is unknown or revoked.", kind="unauthorized",
                            headers=_CHALLENGE)
-    return row
+    return caller
 
 
-async def require_api_key(gateway: GatewayDep, credentials: BearerDep) -> ApiKey:
-    """Every write needs a live API key (one indexed lookup, done on the loop)."""
-    return _authenticate(gateway, credentials)
+async def require_caller(gateway: GatewayDep, credentials: BearerDep) -> Caller:
+    """Every request to a resource needs a live API key; it sees only what its owner owns."""
+    return authenticate(gateway, credentials)
 
 
-async def read_access(gateway: GatewayDep, credentials: BearerDep) -> ApiKey | None:
-    """Reads need a key only when VOLUMESH_REQUIRE_AUTH_FOR_READS is set."""
-    if not gateway.settings.require_auth_for_reads:
-        return None
-    return _authenticate(gateway, credentials)
-
-
-ApiKeyDep = Annotated[ApiKey, Depends(require_api_key)]
-ReadAccessDep = Annotated[ApiKey | None, Depends(read_access)]
+CallerDep = Annotated[Caller, Depends(require_caller)]

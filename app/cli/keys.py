@@ -22,29 +22,37 @@ def _sessions():  # type: ignore[no-untyped-def]
 
 
 @keys_app.command("create")
-def create(name: Annotated[str, typer.Option("--name", help="Who or what the key is for.")]
-           ) -> None:
+def create(
+    name: Annotated[str, typer.Option("--name", help="Who or what the key is for.")],
+    project: Annotated[str | None, typer.Option(
+        "--project", help="Keys of one project see and use each other's captures, jobs, "
+        "assets and rigs; without one, a key sees only its own.")] = None,
+    admin: Annotated[bool, typer.Option(
+        "--admin", help="Sees and acts on everything, and reads /metrics.")] = False,
+) -> None:
     """Creates a key and prints it alone on the last line (it is not shown again)."""
     from app.core.security import create_key
 
     with _sessions()() as session:
-        row, key = create_key(session, name)
-    typer.echo(f"created API key {row.id} named {row.name!r}; store it now, it is not shown "
-               "again:", err=True)
+        row, key = create_key(session, name, project=project, admin=admin)
+    scope = "admin" if admin else f"project {project!r}" if project else "its own work"
+    typer.echo(f"created API key {row.id} named {row.name!r} ({scope}); store it now, it is "
+               "not shown again:", err=True)
     typer.echo(key)
 
 
 @keys_app.command("list")
 def list_() -> None:
-    """Lists keys: id, name, prefix, created, revoked."""
+    """Lists keys: id, name, prefix, scope (admin, project or own), created, revoked."""
     from app.core.security import list_keys
 
     with _sessions()() as session:
         rows = list_keys(session)
     for row in rows:
         revoked = f"revoked {row.revoked_at:%Y-%m-%d %H:%M}" if row.revoked_at else "live"
-        typer.echo(f"{row.id}  {row.name:<24}  {row.prefix}…  {row.created_at:%Y-%m-%d %H:%M}"
-                   f"  {revoked}")
+        scope = "admin" if row.admin else f"project:{row.project}" if row.project else "own"
+        typer.echo(f"{row.id}  {row.name:<24}  {row.prefix}…  {scope:<20}  "
+                   f"{row.created_at:%Y-%m-%d %H:%M}  {revoked}")
 
 
 @keys_app.command("revoke")

@@ -82,7 +82,8 @@ def _exit_on_signal(signum: int, _frame: Any) -> None:
 
 
 def _bootstrap_key(settings: Any) -> None:
-    """First start of an embedded service: create a key so writes work at once."""
+    """First start of an embedded service: create an admin key so the one user of a laptop
+    install sees everything at once (keys for others: `volumesh keys create`)."""
     from app.core.security import create_key
     from workers.db import init_db, make_engine, make_sessionmaker
     from workers.models import ApiKey
@@ -92,11 +93,12 @@ def _bootstrap_key(settings: Any) -> None:
     with make_sessionmaker(engine)() as session:
         if session.query(ApiKey).count():
             return
-        _, key = create_key(session, "bootstrap")
+        _, key = create_key(session, "bootstrap", admin=True)
     path = settings.data_dir / "api-key.txt"
     path.write_text(key + "\n")
     path.chmod(0o600)
-    typer.echo(f"volumesh serve: created the first API key, saved in {path}:\n{key}", err=True)
+    typer.echo(f"volumesh serve: created the first API key (an admin key), saved in {path}:\n"
+               f"{key}", err=True)
 
 
 @app.command()

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from celery import Celery
@@ -11,6 +11,8 @@ from sqlalchemy import Engine
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.core.metrics import Metrics
+from app.core.queues import LiveQueues
+from app.core.sharing import load_secret
 from workers.celery_app import make_celery
 from workers.db import init_db, make_engine, make_sessionmaker
 from workers.settings import Settings
@@ -30,6 +32,13 @@ class Gateway:
     storage: Storage
     celery: Celery
     metrics: Metrics
+    share_secret: bytes = b""
+    """Signs asset share links (`app.core.sharing`); read from the job store on start."""
+    queues: LiveQueues = field(init=False)
+    """The queues live workers consume (cached; a job waiting on another says so)."""
+
+    def __post_init__(self) -> None:
+        self.queues = LiveQueues(self.sessions, self.settings.worker_heartbeat_s)
 
     @classmethod
     def create(cls, settings: Settings) -> Gateway:
@@ -40,6 +49,7 @@ class Gateway:
 
     def start(self) -> None:
         init_db(self.engine)
+        self.share_secret = load_secret(self.sessions)
         self.metrics.watch_jobs(self.sessions)
 
     def close(self) -> None:

@@ -26,8 +26,7 @@ log = logging.getLogger(__name__)
 SERVER_ERROR = {500: "A bug in the gateway, logged whole; bad input never gives one."}
 UNAVAILABLE = {503: "The job store or the broker is unreachable (`service-unavailable`, "
                     "`Retry-After: 5`); nothing was changed."}
-READ = {401: "No valid API key, when `VOLUMESH_REQUIRE_AUTH_FOR_READS` is set (`unauthorized`, "
-             "`WWW-Authenticate: Bearer`).",
+READ = {401: "No valid API key (`unauthorized`, `WWW-Authenticate: Bearer`).",
         422: "A path or query parameter of the wrong form (`validation-error`).",
         **UNAVAILABLE, **SERVER_ERROR}
 WRITE = {401: "No valid API key (`unauthorized`, `WWW-Authenticate: Bearer`).",
@@ -41,9 +40,6 @@ _UNREADABLE_BODY = "There was an error parsing the body"
 # Headers every problem of a status carries (the 401 challenge, when to retry a 503).
 _HEADERS = {401: ("WWW-Authenticate", "`Bearer realm=\"volumesh\"`."),
             503: ("Retry-After", "Seconds to wait before trying again.")}
-# Reads need a key only when VOLUMESH_REQUIRE_AUTH_FOR_READS is set: the empty requirement
-# tells clients (and schemathesis's ignored-auth check) that the bearer key is optional.
-OPTIONAL_AUTH: dict[str, Any] = {"security": [{}]}
 
 
 def problem_responses(*statuses: dict[int, str]) -> dict[int | str, dict[str, Any]]:

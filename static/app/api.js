@@ -161,9 +161,7 @@ export function jobErrorMessage(job) {
   return error.detail || error.title || error.message || JSON.stringify(error);
 }
 
-/** Recent jobs, newest first, whatever the pagination envelope looks like. */
+/** The key's recent jobs, newest first. */
 export async function recentJobs(limit = 10) {
-  const page = await apiFetch(`jobs?limit=${limit}`);
-  const items = Array.isArray(page) ? page : page.items || page.jobs || page.data || [];
-  return items.slice(0, limit);
+  return (await apiFetch(`jobs?limit=${limit}`)).items;
 }

@@ -1,4 +1,5 @@
-// The viewer page: reads ?asset=ID, ?compare=ID, ?sequence=URL, ?live=URL and ?backend=webgl2,
+// The viewer page: reads ?asset=ID (with ?share=TOKEN, a share link's token, for a viewer with
+// no API key), ?compare=ID, ?sequence=URL, ?live=URL and ?backend=webgl2,
 // wires the panels, and publishes its state for automation:
 //   document.body.dataset.state = loading | ready (first frames drawn) | error
 //   window.viewerStats = {backend, triangles, bytes, decodeMs, firstRenderMs, ...}
@@ -14,8 +15,12 @@ const stats = { backend: null, triangles: 0, bytes: 0, decodeMs: 0, loadMs: 0, f
 window.viewerStats = stats;
 document.body.dataset.state = 'loading';
 
-const meshUrl = (id) => `${API}/assets/${encodeURIComponent(id)}/mesh.glb`;
-const reportUrl = (id) => `${API}/assets/${encodeURIComponent(id)}/report.json`;
+const share = params.get('share');
+// A share token opens the shared asset only; others (a comparison) need the viewer's own key.
+const assetPath = (id, file = '') => `${API}/assets/${encodeURIComponent(id)}${file}`
+  + (share && id === params.get('asset') ? `?share=${encodeURIComponent(share)}` : '');
+const meshUrl = (id) => assetPath(id, '/mesh.glb');
+const reportUrl = (id) => assetPath(id, '/report.json');
 
 async function fetchReport(id) {
   try {
@@ -79,6 +84,9 @@ class Page {
       triangles: parsed.triangles, bytes: bytes.byteLength, decodeMs: parsed.decodeMs, loadMs: parsed.loadMs,
     });
     this.viewer.fitToView(boundsOf(parsed.root));
+    this.assetId = id;
+    $('share-section').hidden = !apiKey(); // a share link is made with the owner's key
+    $('share-url').hidden = true;
     this.report = report;
     renderReport($('report'), report);
     $('report-section').hidden = !report;
@@ -183,6 +191,7 @@ class Page {
       if ($('frusta').checked && this.frusta) box.union(boundsOf(this.frusta));
       this.viewer.fitToView(box);
     });
+    $('share').addEventListener('click', () => this.share().catch((err) => showMessage(err.message)));
     $('api-key').value = apiKey();
     $('api-key-form').addEventListener('submit', (e) => {
       e.preventDefault();
@@ -191,8 +200,22 @@ class Page {
     });
   }
 
+  /** Makes a share link of the asset shown (POST /assets/{id}/share) and copies it. */
+  async share() {
+    const link = await apiFetch(`assets/${encodeURIComponent(this.assetId)}/share`, { method: 'POST', json: {} });
+    const url = new URL(link.viewer_url, location.href).href;
+    $('share-url').value = url;
+    $('share-url').hidden = false;
+    $('share-url').select();
+    await navigator.clipboard?.writeText(url).catch(() => {}); // the field shows it either way
+  }
+
   async refreshJobs() {
     const list = $('jobs');
+    if (!apiKey()) {
+      list.textContent = 'Enter an API key below to see your jobs.';
+      return;
+    }
     try {
       const jobs = await recentJobs(10);
       list.replaceChildren(...jobs.map(jobItem));
@@ -208,7 +231,7 @@ class Page {
 async function rawMeshUrl(id, report) {
   const compareId = params.get('compare') || report?.raw_asset_id;
   if (compareId) return meshUrl(compareId);
-  const asset = await apiFetch(`assets/${encodeURIComponent(id)}`);
+  const asset = await apiFetch(assetPath(id));
   return asset?.files?.['mesh_raw.glb']?.url ?? null;
 }
 

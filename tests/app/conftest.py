@@ -31,6 +31,7 @@ class Service:
 
     @property
     def auth(self) -> dict[str, str]:
+        """The Authorization header ``client`` sends unless told otherwise."""
         return {"Authorization": f"Bearer {self.key}"}
 
 
@@ -51,6 +52,15 @@ def service(tmp_path_factory: pytest.TempPathFactory, small_capture_zip: Path
     with TestClient(app, raise_server_exceptions=False) as client:
         with app.state.gateway.sessions() as session:
             _, key = create_key(session, "tests")
+        client.headers["Authorization"] = f"Bearer {key}"  # requests with none: ANONYMOUS
         wait_worker_ready(worker)
         yield Service(client, settings, key, worker, small_capture_zip, data_dir)
     worker.stop()
+
+
+def admin_auth(service: Service) -> dict[str, str]:
+    """The Authorization header of a new admin key of the service."""
+    gateway = service.client.app.state.gateway  # type: ignore[attr-defined]
+    with gateway.sessions() as session:
+        _, key = create_key(session, "admin", admin=True)
+    return {"Authorization": f"Bearer {key}"}

@@ -7,7 +7,10 @@ import hashlib
 import json
 import os
 
-from tests.app.conftest import Service
+from pydantic import SecretStr
+
+from tests.app.conftest import Service, admin_auth
+from tests.integration.services import ANONYMOUS
 from workers.models import Asset, Job
 
 ZIP = {"Content-Type": "application/zip"}
@@ -126,10 +129,11 @@ def test_asset_caching_and_ranges(service: Service) -> None:
 
 def test_health_readiness_metrics_and_docs(service: Service) -> None:
     assert service.client.get("/healthz").json() == {"status": "ok", "checks": {}}
-    ready = service.client.get("/readyz").json()
-    assert ready == {"status": "ok", "checks": {"database": "ok", "storage": "ok",
-                                                "broker": "ok"}}
-    metrics = service.client.get("/metrics").text
+    ready = service.client.get("/readyz")  # the service's one worker only validates uploads
+    assert ready.status_code == 503 and ready.json() == {"status": "unavailable", "checks": {
+        "database": "ok", "storage": "ok", "broker": "ok",
+        "queues": "no live worker consumes cpu, gpu"}}
+    metrics = service.client.get("/metrics", headers=admin_auth(service)).text
     assert 'volumesh_http_requests_total{method="GET",route="/healthz",status="200"}' in metrics
     assert "volumesh_jobs{state=" in metrics
     schema = service.client.get("/openapi.json").json()
@@ -137,16 +141,32 @@ def test_health_readiness_metrics_and_docs(service: Service) -> None:
     assert service.client.get("/docs").status_code == 200
 
 
-def test_reads_can_require_a_key(service: Service) -> None:
+def test_reads_need_a_key(service: Service) -> None:
+    for path in ("/api/v1/jobs", "/api/v1/captures", "/api/v1/rigs", "/metrics"):
+        response = service.client.get(path, headers=ANONYMOUS)
+        assert response.status_code == 401, path
+        assert response.headers["www-authenticate"].startswith("Bearer")
+    assert service.client.get("/healthz", headers=ANONYMOUS).status_code == 200
+    assert "checks" in service.client.get("/readyz", headers=ANONYMOUS).json()
+
+
+def test_metrics_take_their_token_or_an_admin_key(service: Service) -> None:
     from fastapi.testclient import TestClient
 
     from app.main import create_app
 
-    settings = service.settings.model_copy(update={"require_auth_for_reads": True})
+    token = "metrics-" + "x" * 30
+    settings = service.settings.model_copy(update={"metrics_token": SecretStr(token)})
     with TestClient(create_app(settings, viewer=False)) as client:
-        assert client.get("/api/v1/jobs").status_code == 401
-        assert client.get("/api/v1/jobs", headers=service.auth).status_code == 200
-        assert client.get("/healthz").status_code == 200
+        scraped = client.get("/metrics", headers={"Authorization": f"Bearer {token}"})
+        assert scraped.status_code == 200 and "volumesh_http_requests_total" in scraped.text
+        assert client.get("/metrics", headers=service.auth).status_code == 403  # not an admin
+        assert client.get("/metrics", headers=admin_auth(service)).status_code == 200
+        wrong = client.get("/metrics", headers={"Authorization": f"Bearer {token}x"})
+        assert wrong.status_code == 401
+        # The metrics token is no API key.
+        assert client.get("/api/v1/jobs", headers={"Authorization": f"Bearer {token}"}
+                          ).status_code == 401
 
 
 def test_cors_is_configurable(service: Service) -> None:
@@ -179,14 +199,14 @@ def test_readiness_reports_an_unreachable_broker(service: Service) -> None:
         assert body["checks"]["database"] == "ok"
         # Without a broker a job cannot be queued: a clear 503, not a 500.
         capture = upload(service)
-        before = client.get("/api/v1/jobs").json()["total"]
+        before = client.get("/api/v1/jobs", headers=service.auth).json()["total"]
         job = client.post("/api/v1/jobs", headers=service.auth,
                           json={"capture_id": capture["id"]})
         assert job.status_code == 503, job.text
         assert "broker" in job.json()["detail"]
         assert job.headers["retry-after"]
         # No job was left behind to wait forever for a task that was never queued.
-        assert client.get("/api/v1/jobs").json()["total"] == before
+        assert client.get("/api/v1/jobs", headers=service.auth).json()["total"] == before
         # A new upload cannot be validated either: 503, and nothing half-accepted is kept.
         fresh = service.client.post("/api/v1/captures", headers=service.auth, files={
             "file": ("c.zip", _with_extra_file(service.capture_zip.read_bytes()),
@@ -197,7 +217,7 @@ def test_readiness_reports_an_unreachable_broker(service: Service) -> None:
                            headers={**service.auth, **ZIP})
         assert down.status_code == 503, down.text
         sha = hashlib.sha256(content).hexdigest()
-        assert client.get(f"/api/v1/captures/{sha[:32]}").status_code == 404
+        assert client.get(f"/api/v1/captures/{sha[:32]}", headers=service.auth).status_code == 404
         assert not list((service.data_dir / "storage" / "captures").glob(f"{sha}*"))
 
 

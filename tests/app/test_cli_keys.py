@@ -46,3 +46,21 @@ def test_bad_key_commands_are_one_line_errors(tmp_path: Path) -> None:
     assert unknown.stderr.strip().startswith("volumesh: error: KEY: no live key")
     empty = _cli(env, "create", "--name", "  ")
     assert empty.returncode == 2 and "--name" in empty.stderr
+
+
+def test_project_and_admin_keys(tmp_path: Path) -> None:
+    env = base_env(data_dir=str(tmp_path))
+    keys = {}
+    for name, extra in (("one", ["--project", "studio"]), ("two", ["--project", "studio"]),
+                        ("ops", ["--admin"]), ("solo", [])):
+        created = _cli(env, "create", "--name", name, *extra)
+        assert created.returncode == 0, created.stderr
+        keys[name] = {"Authorization": f"Bearer {created.stdout.strip().splitlines()[-1]}"}
+    listed = _cli(env, "list").stdout
+    assert listed.count("project:studio") == 2 and "admin" in listed
+    rig = {"world_from_depth": {"cam0": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}}
+    with TestClient(create_app(Settings(data_dir=tmp_path), viewer=False)) as client:
+        made = client.post("/api/v1/rigs", json=rig, headers=keys["one"]).json()["id"]
+        seen = {name: client.get(f"/api/v1/rigs/{made}", headers=auth).status_code
+                for name, auth in keys.items()}
+    assert seen == {"one": 200, "two": 200, "ops": 200, "solo": 404}

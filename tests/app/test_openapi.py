@@ -57,14 +57,18 @@ def test_each_route_declares_the_statuses_it_can_answer(
     assert "416" in operations["GET", "/api/v1/assets/{asset_id}/{name}"]["responses"]
 
 
-def test_reads_take_a_key_optionally_and_writes_require_one(
+def test_every_api_route_needs_a_key_and_asset_reads_take_a_share_token(
         operations: dict[tuple[str, str], dict[str, Any]]) -> None:
+    shareable = {("GET", "/api/v1/assets/{asset_id}"), ("GET", "/api/v1/assets/{asset_id}/{name}")}
     for (method, path), operation in operations.items():
         if not path.startswith("/api/v1/"):
             continue
         security = operation["security"]
         assert {"HTTPBearer": []} in security, f"{method} {path}"
-        assert ({} in security) == (method == "GET"), f"{method} {path}"
+        assert ({} in security) == ((method, path) in shareable), f"{method} {path}"
+        if (method, path) in shareable:
+            assert "share" in {p["name"] for p in operation["parameters"]}
+    assert operations["GET", "/metrics"]["security"] == [{"HTTPBearer": []}]
 
 
 def test_the_event_stream_declares_its_events(

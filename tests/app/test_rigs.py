@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 
 from app.schemas import check_rigid
 from tests.app.conftest import Service
+from tests.integration.services import ANONYMOUS
 
 
 def _pose(yaw_deg: float = 30.0, x_m: float = 1.0) -> list[list[float]]:
@@ -56,7 +57,7 @@ def test_a_bad_pose_is_refused_naming_the_camera(service: Service, matrix: Any,
 
 def test_a_rig_needs_a_key_known_format_and_poses(service: Service) -> None:
     body = {"world_from_depth": {"cam0": _pose()}}
-    _problem(service.client.post("/api/v1/rigs", json=body), 401)
+    _problem(service.client.post("/api/v1/rigs", json=body, headers=ANONYMOUS), 401)
     problem = _problem(service.client.post("/api/v1/rigs", headers=service.auth,
                                            json={**body, "format": "other/2"}), 422)
     assert "format" in problem["detail"]

@@ -23,6 +23,10 @@ ROOT = Path(__file__).resolve().parents[2]
 PG_URL = "postgresql://postgres@127.0.0.1:5432/test"
 
 
+ANONYMOUS = {"Authorization": ""}
+"""Headers of a request with no API key, from a client that sends one by default."""
+
+
 def free_port() -> int:
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
@@ -226,8 +230,8 @@ def create_key(env: dict[str, str], name: str = "test") -> str:
 
 @contextlib.contextmanager
 def gateway_client(values: dict[str, str]) -> Iterator[tuple[Any, dict[str, str]]]:
-    """The gateway in this process (a TestClient) on the settings ``values``, and the
-    Authorization header of a fresh API key."""
+    """The gateway in this process (a TestClient) on the settings ``values``, sending a fresh
+    API key on every request, and that key's Authorization header."""
     from fastapi.testclient import TestClient
 
     from app.core.security import create_key
@@ -238,6 +242,7 @@ def gateway_client(values: dict[str, str]) -> Iterator[tuple[Any, dict[str, str]
     with TestClient(app) as client:
         with app.state.gateway.sessions() as session:
             _, key = create_key(session, "tests")
+        client.headers["Authorization"] = f"Bearer {key}"
         yield client, {"Authorization": f"Bearer {key}"}
 
 

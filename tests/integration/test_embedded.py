@@ -10,6 +10,7 @@ import httpx
 import pytest
 
 from tests.integration.services import (
+    ANONYMOUS,
     FAST_JOB,
     Process,
     base_env,
@@ -38,6 +39,7 @@ def test_serve_runs_a_job_end_to_end(tmp_path: Path) -> None:
         assert oct(key_file.stat().st_mode & 0o777) == "0o600"
         assert key in serve.log.read_text()  # shown once, on first start
         auth = {"Authorization": f"Bearer {key}"}
+        client.headers.update(auth)
         capture = make_capture_zip(tmp_path, cameras=4, width=160, height=144)
         upload = client.post("/api/v1/captures", headers=auth, files={
             "file": ("capture.zip", capture.read_bytes(), "application/zip")})
@@ -49,6 +51,8 @@ def test_serve_runs_a_job_end_to_end(tmp_path: Path) -> None:
         assert done["state"] == "succeeded", (done, serve.tail())
         glb = client.get(done["links"]["mesh_glb"])
         check_draco_glb(glb.content)
+        assert client.get("/metrics").status_code == 200  # the first key is an admin key
+        assert client.get(done["links"]["self"], headers=ANONYMOUS).status_code == 401
         # Everything lives in the data folder: job store, broker files, storage.
         assert (data_dir / "volumesh.db").is_file() and (data_dir / "broker").is_dir()
         assert list((data_dir / "storage" / "assets").rglob("mesh.glb"))
@@ -118,6 +122,7 @@ def test_jobs_survive_a_killed_serve_and_the_sample_is_ready(tmp_path: Path) -> 
     try:
         wait_for(lambda: client.get("/readyz").status_code == 200, 60, "serve", interval_s=0.2)
         auth = {"Authorization": f"Bearer {(data_dir / 'api-key.txt').read_text().strip()}"}
+        client.headers.update(auth)
         capture = make_capture_zip(tmp_path, cameras=4, width=160, height=144)
         upload = client.post("/api/v1/captures", content=capture.read_bytes(),
                              headers={**auth, "Content-Type": "application/zip"})

@@ -144,6 +144,12 @@ class LiveGateway:
     data_dir: Path
     url: str
     key: str
+    owner: str
+    """What the key's work is owned by (assets stored here are its owner's)."""
+
+    @property
+    def auth(self) -> dict[str, str]:
+        return {"Authorization": f"Bearer {self.key}"}
 
     def store_asset(self, glb: bytes, report: dict[str, Any] | None = None) -> str:
         """Puts an asset in the gateway's store as a finished job would; returns its id."""
@@ -158,7 +164,7 @@ class LiveGateway:
                                 size_bytes=0, storage_key=f"captures/{capture_id}.zip",
                                 state="ready", cameras=8, frames=1))
             session.add(Job(id=job_id, capture_id=capture_id, state="running",
-                            stages=["export"], stage="export"))
+                            stages=["export"], stage="export", owner=self.owner))
         files = {"mesh.glb": _put(ctx, job_id, "mesh.glb", glb, "model/gltf-binary")}
         if report is not None:
             files["report.json"] = _put(ctx, job_id, "report.json", json.dumps(report).encode(),
@@ -173,8 +179,7 @@ class LiveGateway:
         """Uploads a capture, runs a job on it through the API and returns the finished job."""
         import httpx
 
-        auth = {"Authorization": f"Bearer {self.key}"}
-        with httpx.Client(base_url=self.url, headers=auth, timeout=60) as client:
+        with httpx.Client(base_url=self.url, headers=self.auth, timeout=60) as client:
             upload = client.post("/api/v1/captures", content=capture_zip.read_bytes(),
                                  headers={"Content-Type": "application/zip"})
             upload.raise_for_status()
@@ -217,7 +222,7 @@ def live_gateway(data_dir: Path) -> Iterator[LiveGateway]:
     queue, on the embedded broker and store in data_dir, with an API key."""
     import httpx
 
-    from app.core.security import create_key
+    from app.core.security import create_key, owner_of
     from workers.db import init_db, make_engine, make_sessionmaker
     from workers.settings import Settings
 
@@ -226,7 +231,7 @@ def live_gateway(data_dir: Path) -> Iterator[LiveGateway]:
     engine = make_engine(Settings(data_dir=data_dir))
     init_db(engine)
     with make_sessionmaker(engine)() as session:
-        _, key = create_key(session, "web-tests")
+        row, key = create_key(session, "web-tests")
     engine.dispose()
     port = free_port()
     work = Child([sys.executable, "-m", "workers", "--queues", "cpu,gpu,validate",
@@ -241,7 +246,7 @@ def live_gateway(data_dir: Path) -> Iterator[LiveGateway]:
                          60, "the gateway")
         work.wait_for(lambda: " ready." in work.log.read_text(errors="replace"), 60,
                       "the worker")
-        yield LiveGateway(data_dir, url, key)
+        yield LiveGateway(data_dir, url, key, owner_of(row.id, None))
     finally:
         gateway.stop()
         work.stop()
@@ -262,8 +267,10 @@ class ConsoleLog:
 
 
 @contextlib.contextmanager
-def viewer_page(playwright: Any, backend: str) -> Iterator[tuple[Any, ConsoleLog]]:
-    """A page in a fresh Chromium profile; `backend` 'webgpu' adds the GPU flags, 'webgl2' none."""
+def viewer_page(playwright: Any, backend: str, api_key: str | None = None
+                ) -> Iterator[tuple[Any, ConsoleLog]]:
+    """A page in a fresh Chromium profile; `backend` 'webgpu' adds the GPU flags, 'webgl2' none.
+    With `api_key` the viewer holds that key (as if saved under "API key") from the start."""
     if backend not in ("webgpu", "webgl2"):
         raise ValueError(f"backend must be webgpu or webgl2, got {backend!r}")
     chromium = require_chromium()
@@ -272,6 +279,9 @@ def viewer_page(playwright: Any, backend: str) -> Iterator[tuple[Any, ConsoleLog
         context = playwright.chromium.launch_persistent_context(
             profile, executable_path=str(chromium), headless=True, args=args, viewport=VIEWPORT)
         try:
+            if api_key is not None:
+                context.add_init_script(f"localStorage.setItem('volumesh.apiKey', "
+                                        f"{json.dumps(api_key)})")
             page = context.pages[0] if context.pages else context.new_page()
             log = ConsoleLog()
             page.on("console", lambda m: log.messages.append(

@@ -44,7 +44,7 @@ def renders(playwright: Any, gateway: LiveGateway, job: dict[str, Any], artifact
     """A real job's asset, rendered once per backend in a fresh browser."""
     found = {}
     for backend in ("webgpu", "webgl2"):
-        with viewer_page(playwright, backend) as (page, log):
+        with viewer_page(playwright, backend, gateway.key) as (page, log):
             page.goto(f"{gateway.url}/?asset={job['asset_id']}")
             state = wait_state(page)
             found[backend] = Render(
@@ -60,7 +60,7 @@ def test_job_asset_renders(renders: dict[str, Render], backend: str, gateway: Li
                            job: dict[str, Any]) -> None:
     render = renders[backend]
     assert render.state == "ready", render.message
-    report = httpx.get(f"{gateway.url}{job['links']['report']}").json()
+    report = httpx.get(f"{gateway.url}{job['links']['report']}", headers=gateway.auth).json()
     assert render.stats["backend"] == backend
     assert render.stats["triangles"] == report["triangles"]
     assert render.stats["bytes"] == report["glb_bytes"]
@@ -91,7 +91,7 @@ def _near(pixels: NDArray[np.int16], rgb: tuple[int, ...], tolerance: int) -> fl
 
 def test_quality_views(playwright: Any, gateway: LiveGateway, torus_asset: str,
                        raw_torus_asset: str, artifacts: Path) -> None:
-    with viewer_page(playwright, "webgpu") as (page, log):
+    with viewer_page(playwright, "webgpu", gateway.key) as (page, log):
         page.goto(f"{gateway.url}/?asset={torus_asset}&compare={raw_torus_asset}")
         assert wait_state(page) == "ready", page.inner_text("#message")
         page.wait_for_function("!document.getElementById('compare-mode').disabled")
@@ -146,7 +146,7 @@ def test_error_heat_map(playwright: Any, gateway: LiveGateway, artifacts: Path) 
     error_m = (0.004 * (x - x.min()) / np.ptp(x)).astype(np.float32)  # 0 -> 4 mm, left -> right
     glb = with_error_attribute(encode_glb(mesh, draco=None), error_m)
     asset = gateway.store_asset(glb, {"ground_truth": {"rms_m": 0.0021, "p95_m": 0.0038}})
-    with viewer_page(playwright, "webgpu") as (page, log):
+    with viewer_page(playwright, "webgpu", gateway.key) as (page, log):
         page.goto(f"{gateway.url}/?asset={asset}")
         assert wait_state(page) == "ready", page.inner_text("#message")
         page.select_option("#shading", "error")
@@ -175,7 +175,7 @@ def test_sequence_plays_and_scrubs(playwright: Any, gateway: LiveGateway, torus_
 
     SequenceManifest.model_validate(manifest)
     data_url = "data:application/json," + urllib.parse.quote(json.dumps(manifest))
-    with viewer_page(playwright, "webgpu") as (page, log):
+    with viewer_page(playwright, "webgpu", gateway.key) as (page, log):
         page.goto(f"{gateway.url}/?sequence={urllib.parse.quote(data_url, safe='')}")
         assert wait_state(page) == "ready", page.inner_text("#message")
         assert page.is_visible("#sequence-bar")
@@ -225,10 +225,11 @@ def test_broken_zip_shows_the_api_message(playwright: Any, gateway: LiveGateway,
 
 def test_missing_asset_shows_the_api_message(playwright: Any, gateway: LiveGateway) -> None:
     missing = "0" * 32
-    with viewer_page(playwright, "webgl2") as (page, log):
+    with viewer_page(playwright, "webgl2", gateway.key) as (page, log):
         page.goto(f"{gateway.url}/?asset={missing}")
         assert wait_state(page) == "error"
-        detail = httpx.get(f"{gateway.url}/api/v1/assets/{missing}/mesh.glb").json()["detail"]
+        detail = httpx.get(f"{gateway.url}/api/v1/assets/{missing}/mesh.glb",
+                           headers=gateway.auth).json()["detail"]
         assert page.inner_text("#message").strip() == detail
         assert log.errors(allowed_urls=(f"{gateway.url}/api/v1/assets/{missing}/",)) == []
 
@@ -251,9 +252,11 @@ def test_upload_through_the_page_runs_to_a_rendered_mesh(
         stats = page.evaluate("window.viewerStats")
         assert stats["job"]["state"] == "succeeded"
         assert stats["job"]["updates"] >= 3  # queued/running/... pushed live, not one poll
-        asset = httpx.get(f"{gateway.url}/api/v1/jobs/{stats['job']['id']}").json()["asset_id"]
+        asset = httpx.get(f"{gateway.url}/api/v1/jobs/{stats['job']['id']}",
+                          headers=gateway.auth).json()["asset_id"]
         assert page.evaluate("location.search") == f"?asset={asset}"
-        report = httpx.get(f"{gateway.url}/api/v1/assets/{asset}/report.json").json()
+        report = httpx.get(f"{gateway.url}/api/v1/assets/{asset}/report.json",
+                           headers=gateway.auth).json()
         assert stats["triangles"] == report["triangles"] > 1000
         _settle(page)
         pixels = viewport_pixels(page, artifacts / "upload-result.png")
@@ -261,3 +264,27 @@ def test_upload_through_the_page_runs_to_a_rendered_mesh(
         assert not page.is_visible("#hint")
         assert page.locator("#jobs a").count() >= 1
         assert log.errors() == []
+
+
+def test_a_share_link_shows_the_asset_to_a_viewer_with_no_key(
+        playwright: Any, gateway: LiveGateway, torus_asset: str) -> None:
+    with viewer_page(playwright, "webgl2", gateway.key) as (page, log):
+        page.goto(f"{gateway.url}/?asset={torus_asset}")
+        assert wait_state(page) == "ready", page.inner_text("#message")
+        page.click("#share")
+        page.wait_for_function("document.getElementById('share-url').value !== ''")
+        link = page.input_value("#share-url")
+        owner_view = page.evaluate("window.viewerStats")
+        assert log.errors() == []
+    assert link.startswith(f"{gateway.url}/?asset={torus_asset}&share=")
+    with viewer_page(playwright, "webgl2") as (page, log):
+        page.goto(link)
+        assert wait_state(page) == "ready", page.inner_text("#message")
+        shared_view = page.evaluate("window.viewerStats")
+        assert shared_view["triangles"] == owner_view["triangles"] > 50_000
+        assert page.is_hidden("#share-section")  # no key: nothing to share with
+        assert log.errors() == []
+        # Without the token the same page has no access.
+        page.goto(f"{gateway.url}/?asset={torus_asset}")
+        assert wait_state(page) == "error"
+        assert "API key" in page.inner_text("#message")

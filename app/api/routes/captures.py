@@ -9,25 +9,27 @@ rejected capture is deleted again, so nothing half-valid is ever kept.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import time
 from datetime import UTC, datetime
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Path, Request, Response
-from sqlalchemy import delete, select
+from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session
 from starlette.concurrency import run_in_threadpool
 
-from app.api.deps import ApiKeyDep, GatewayDep, ReadAccessDep, SessionDep
+from app.api.deps import CallerDep, GatewayDep, SessionDep
 from app.api.pagination import PageLimit, PageOffset, fetch_page
+from app.core.capture_store import forget
 from app.core.context import Gateway
-from app.core.problems import BODY, OPTIONAL_AUTH, READ, WRITE, ProblemError, problem_responses
+from app.core.problems import BODY, READ, WRITE, ProblemError, problem_responses
+from app.core.security import can_use_capture
 from app.core.uploads import ReceivedUpload, receive_upload
 from app.core.zipcheck import ZipLimits, check_zip
 from app.schemas import API_PREFIX, ID_PATTERN, CapturePage, CapturePublic
 from workers.celery_app import QUEUE_VALIDATE, TASK_VALIDATE
-from workers.models import Capture, utcnow
+from workers.models import Capture, CaptureGrant, new_id, utcnow
 
 router = APIRouter(prefix="/captures", tags=["captures"])
 
@@ -69,19 +71,22 @@ def _limits(gateway: Gateway) -> ZipLimits:
                      max_compression_ratio=s.max_compression_ratio)
 
 
-def _register(gateway: Gateway, upload: ReceivedUpload) -> tuple[str, bool]:
-    """Store the upload once per content; returns (capture id, whether it must be validated)."""
+def _register(gateway: Gateway, upload: ReceivedUpload, owner: str) -> tuple[str, bool, bool]:
+    """Store the upload once per content and grant it to ``owner``.
+
+    Returns (capture id, whether it must be validated, whether ``owner`` had it already)."""
     capture_id = upload.sha256[:32]
     with gateway.sessions() as session:
         existing = session.get(Capture, capture_id)
         if existing is not None and existing.state != "rejected":
             stale = (existing.state == "validating" and (utcnow() - _aware(existing.created_at))
                      .total_seconds() > gateway.settings.validation_timeout_s)
-            return capture_id, stale
+            return capture_id, stale, not _grant(session, capture_id, owner)
         if existing is not None:  # rejected by an earlier reader: read it again
-            session.delete(existing)
-            session.commit()
-    key = f"captures/{upload.sha256}.zip"
+            forget(gateway, capture_id)
+    # A key of this upload's own: deleting a refused upload's zip can never take the zip of
+    # the same bytes uploaded again a moment later.
+    key = f"captures/{upload.sha256}-{new_id()[:8]}.zip"
     gateway.storage.put_file(key, upload.path, move=True)
     with gateway.sessions() as session:
         session.add(Capture(id=capture_id, sha256=upload.sha256, size_bytes=upload.size_bytes,
@@ -89,8 +94,23 @@ def _register(gateway: Gateway, upload: ReceivedUpload) -> tuple[str, bool]:
         try:
             session.commit()
         except IntegrityError:  # the same content arrived twice at once: the other one won
-            return capture_id, False
-    return capture_id, True
+            session.rollback()
+            return capture_id, False, not _grant(session, capture_id, owner)
+        _grant(session, capture_id, owner)
+    return capture_id, True, False
+
+
+def _grant(session: Session, capture_id: str, owner: str) -> bool:
+    """Let ``owner`` use the capture; False when it could already."""
+    if session.get(CaptureGrant, (capture_id, owner)) is not None:
+        return False
+    session.add(CaptureGrant(capture_id=capture_id, owner=owner))
+    try:
+        session.commit()
+    except IntegrityError:  # the same owner uploaded it twice at once
+        session.rollback()
+        return False
+    return True
 
 
 def _aware(value: datetime) -> datetime:
@@ -103,29 +123,13 @@ def _state(gateway: Gateway, capture_id: str) -> Capture | None:
         return session.get(Capture, capture_id)
 
 
-def _forget(gateway: Gateway, capture_id: str, state: str = "rejected") -> bool:
-    """Delete a capture still in ``state`` (rejected, or still validating): row and zip.
-
-    One conditional DELETE, so a capture a worker has just marked ready is never taken."""
-    with gateway.sessions() as session:
-        key = session.scalar(select(Capture.storage_key).where(Capture.id == capture_id))
-        deleted = session.execute(delete(Capture).where(Capture.id == capture_id,
-                                                        Capture.state == state))
-        session.commit()
-    if key is None or not deleted.rowcount:  # type: ignore[attr-defined]
-        return False
-    with contextlib.suppress(FileNotFoundError):
-        gateway.storage.delete(key)
-    return True
-
-
 async def _settled(gateway: Gateway, capture_id: str, row: Capture | None) -> Capture:
     """The answer for a capture whose validation has ended: the row, or the problem."""
     if row is None:
         raise ProblemError(409, "The capture was removed while it was being validated; "
                            "upload it again.")
     if row.state == "rejected":
-        await run_in_threadpool(_forget, gateway, capture_id)
+        await run_in_threadpool(forget, gateway, capture_id)
         raise ProblemError(422, f"The capture is not valid: {row.error}",
                            kind="invalid-capture")
     return row
@@ -141,7 +145,7 @@ async def _await_validation(gateway: Gateway, capture_id: str) -> Capture:
         await asyncio.sleep(_POLL_S)
     # Out of time: end the validation here, so the capture is not left `validating` for good
     # (a worker that died on it, or none running); one that finished meanwhile is kept.
-    if not await run_in_threadpool(_forget, gateway, capture_id, "validating"):
+    if not await run_in_threadpool(forget, gateway, capture_id, "validating"):
         return await _settled(gateway, capture_id,
                               await run_in_threadpool(_state, gateway, capture_id))
     raise ProblemError(
@@ -155,17 +159,19 @@ async def _await_validation(gateway: Gateway, capture_id: str) -> Capture:
              summary="Upload a capture zip",
              responses=problem_responses(WRITE, BODY, _UPLOAD_PROBLEMS))
 async def upload_capture(request: Request, response: Response, gateway: GatewayDep,
-                         _key: ApiKeyDep) -> CapturePublic:
-    """Stores the capture (once per content) after a worker has read it whole.
+                         caller: CallerDep) -> CapturePublic:
+    """Stores the capture (once per content) after a worker has read it whole; it belongs to
+    the key's owner.
 
-    Uploading identical bytes again returns the same capture (201, header
-    `Volumesh-Deduplicated: true`).
+    Uploading identical bytes again returns the same capture (201, with the header
+    `Volumesh-Deduplicated: true` when the key's owner had uploaded them before).
     """
     settings = gateway.settings
     upload = await receive_upload(request, settings.tmp_dir, settings.max_upload_bytes)
     try:
         await run_in_threadpool(check_zip, upload.path, _limits(gateway))
-        capture_id, needs_task = await run_in_threadpool(_register, gateway, upload)
+        capture_id, needs_task, had_it = await run_in_threadpool(_register, gateway, upload,
+                                                                 caller.owner)
     finally:
         upload.path.unlink(missing_ok=True)
     if needs_task:
@@ -174,9 +180,9 @@ async def upload_capture(request: Request, response: Response, gateway: GatewayD
                                     QUEUE_VALIDATE)
         except Exception:
             # Not queued, so never validated: do not keep it half-accepted.
-            await run_in_threadpool(_forget, gateway, capture_id, "validating")
+            await run_in_threadpool(forget, gateway, capture_id, "validating")
             raise
-    else:
+    if had_it:
         response.headers["Volumesh-Deduplicated"] = "true"
     row = await _await_validation(gateway, capture_id)
     response.headers["Location"] = f"{API_PREFIX}/captures/{row.id}"
@@ -186,21 +192,24 @@ async def upload_capture(request: Request, response: Response, gateway: GatewayD
 CaptureId = Annotated[str, Path(pattern=ID_PATTERN, description="A capture id.")]
 
 
-@router.get("/{capture_id}", response_model=CapturePublic, openapi_extra=OPTIONAL_AUTH,
-            responses=problem_responses(READ, {404: "There is no such capture."}))
-def get_capture(capture_id: CaptureId, session: SessionDep,
-                _read: ReadAccessDep) -> CapturePublic:
+@router.get("/{capture_id}", response_model=CapturePublic,
+            responses=problem_responses(READ, {404: "There is no such capture (or another "
+                                               "owner's)."}))
+def get_capture(capture_id: CaptureId, session: SessionDep, caller: CallerDep) -> CapturePublic:
     row = session.get(Capture, capture_id)
-    if row is None or row.state == "rejected":
+    if row is None or row.state == "rejected" or not can_use_capture(session, caller, row.id):
         raise ProblemError(404, f"There is no capture {capture_id}.", kind="not-found")
     return CapturePublic.of(row)
 
 
-@router.get("", response_model=CapturePage, openapi_extra=OPTIONAL_AUTH,
-            responses=problem_responses(READ))
-def list_captures(session: SessionDep, _read: ReadAccessDep, limit: PageLimit = 20,
+@router.get("", response_model=CapturePage, responses=problem_responses(READ))
+def list_captures(session: SessionDep, caller: CallerDep, limit: PageLimit = 20,
                   offset: PageOffset = 0) -> CapturePage:
     query = select(Capture).where(Capture.state == "ready")
-    rows, total = fetch_page(session, query, (Capture.created_at.desc(),), limit, offset)
+    if not caller.admin:
+        query = query.where(Capture.id.in_(
+            select(CaptureGrant.capture_id).where(CaptureGrant.owner == caller.owner)))
+    rows, total = fetch_page(session, query, (Capture.created_at.desc(), Capture.id), limit,
+                             offset)
     return CapturePage(items=[CapturePublic.of(r) for r in rows], total=total, limit=limit,
                        offset=offset)

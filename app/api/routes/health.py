@@ -2,17 +2,23 @@
 
 from __future__ import annotations
 
+import hmac
+
 from fastapi import APIRouter
 from fastapi.responses import JSONResponse, Response
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from sqlalchemy import text
 
-from app.api.deps import GatewayDep
+from app.api.deps import BearerDep, GatewayDep, authenticate
 from app.core.context import Gateway
-from app.core.problems import SERVER_ERROR, problem_responses
+from app.core.problems import SERVER_ERROR, ProblemError, problem_responses
 from app.schemas import Health
+from workers.celery_app import QUEUES
 
 router = APIRouter(tags=["health"])
+_METRICS_PROBLEMS = {401: "No valid token or API key (`unauthorized`, "
+                          "`WWW-Authenticate: Bearer`).",
+                     403: "An API key that is not an admin key (`forbidden`)."}
 
 
 @router.get("/healthz", response_model=Health, responses=problem_responses(SERVER_ERROR))
@@ -38,13 +44,20 @@ def _check(gateway: Gateway) -> dict[str, str]:
         checks["broker"] = "ok"
     except Exception as exc:
         checks["broker"] = f"unreachable: {type(exc).__name__}"
+    try:
+        consumed = gateway.queues.get()
+        idle = [queue for queue in QUEUES if queue not in consumed]
+        checks["queues"] = f"no live worker consumes {', '.join(idle)}" if idle else "ok"
+    except Exception as exc:
+        checks["queues"] = f"unknown: {type(exc).__name__}"
     return checks
 
 
 # A 503 here is the readiness report itself (Health, application/json), not a problem: probes
 # and people read its `checks`.
 @router.get("/readyz", response_model=Health, responses={
-    503: {"model": Health, "description": "Something it depends on is unreachable."},
+    503: {"model": Health, "description": "Something it depends on is unreachable, or a queue "
+                                          "(`cpu`, `gpu`, `validate`) has no live worker."},
     **problem_responses(SERVER_ERROR)})
 def readyz(gateway: GatewayDep) -> Response:
     checks = _check(gateway)
@@ -55,7 +68,16 @@ def readyz(gateway: GatewayDep) -> Response:
 
 @router.get("/metrics", response_class=Response,
             responses={200: {"content": {CONTENT_TYPE_LATEST: {"schema": {"type": "string"}}}},
-                       **problem_responses(SERVER_ERROR)})
-def metrics(gateway: GatewayDep) -> Response:
+                       **problem_responses(_METRICS_PROBLEMS, SERVER_ERROR)})
+def metrics(gateway: GatewayDep, credentials: BearerDep) -> Response:
+    """Prometheus metrics, for `VOLUMESH_METRICS_TOKEN` or an admin API key."""
+    token = gateway.settings.metrics_token
+    sent = None if credentials is None else credentials.credentials
+    if token is None or sent is None or not hmac.compare_digest(
+            sent.encode(), token.get_secret_value().encode()):
+        caller = authenticate(gateway, credentials)
+        if not caller.admin:
+            raise ProblemError(403, "Metrics are read with VOLUMESH_METRICS_TOKEN or an admin "
+                               "key (`volumesh keys create --admin`).", kind="forbidden")
     registry = gateway.metrics.registry
     return Response(generate_latest(registry), media_type=CONTENT_TYPE_LATEST)

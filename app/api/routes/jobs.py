@@ -13,17 +13,11 @@ from sqlalchemy import bindparam, select
 from sqlalchemy.orm import Session
 from starlette.concurrency import run_in_threadpool
 
-from app.api.deps import (
-    ApiKeyDep,
-    BearerDep,
-    GatewayDep,
-    ReadAccessDep,
-    SessionDep,
-    read_access,
-)
+from app.api.deps import BearerDep, CallerDep, GatewayDep, SessionDep, authenticate
 from app.api.pagination import PageLimit, PageOffset, fetch_page
 from app.core.context import Gateway
-from app.core.problems import BODY, OPTIONAL_AUTH, READ, WRITE, ProblemError, problem_responses
+from app.core.problems import BODY, READ, WRITE, ProblemError, problem_responses
+from app.core.security import Caller, can_use_capture
 from app.schemas import API_PREFIX, ID_PATTERN, JobCreate, JobPage, JobPublic, JobState
 from workers.celery_app import QUEUE_CPU, TASK_STAGE
 from workers.models import TERMINAL_STATES, Capture, Job, Rig, new_id, utcnow
@@ -33,7 +27,7 @@ router = APIRouter(prefix="/jobs", tags=["jobs"])
 JobId = Annotated[str, Path(pattern=ID_PATTERN, description="A job id.")]
 EVENT_POLL_S = 0.25
 EVENT_KEEPALIVE_S = 15.0
-_NO_JOB = {404: "There is no such job."}
+_NO_JOB = {404: "There is no such job (or another owner's)."}
 # OpenAPI 3.1 reads a text/event-stream schema as one event's: `event: job`, an `id:`, and
 # `data:` holding the job as GET /jobs/{job_id} answers it (keep-alive comments are no events).
 _EVENT_STREAM = {
@@ -52,9 +46,10 @@ def _not_found(job_id: str) -> ProblemError:
     return ProblemError(404, f"There is no job {job_id}.", kind="not-found")
 
 
-def _ready_capture(session: Session, capture_id: str) -> Capture:
+def _ready_capture(session: Session, caller: Caller, capture_id: str) -> Capture:
     capture = session.get(Capture, capture_id)
-    if capture is None or capture.state == "rejected":
+    if (capture is None or capture.state == "rejected"
+            or not can_use_capture(session, caller, capture_id)):
         raise ProblemError(404, f"There is no capture {capture_id}; upload it with "
                            "POST /api/v1/captures first.", kind="not-found")
     if capture.state != "ready":
@@ -63,27 +58,27 @@ def _ready_capture(session: Session, capture_id: str) -> Capture:
     return capture
 
 
-def _options(session: Session, body: JobCreate) -> dict[str, Any]:
+def _options(session: Session, caller: Caller, body: JobCreate) -> dict[str, Any]:
     """The job's options; a saved rig's poses are copied in, so the job stands on its own."""
     options = body.options()
     if body.rig_id is not None:
         rig = session.get(Rig, body.rig_id)
-        if rig is None:
+        if rig is None or not caller.sees(rig.owner):
             raise ProblemError(404, f"There is no rig {body.rig_id}; upload one with POST "
                                "/api/v1/rigs first.", kind="not-found")
         options["world_from_depth"] = rig.document["world_from_depth"]
     return options
 
 
-def _create(gateway: Gateway, body: JobCreate) -> Job:
+def _create(gateway: Gateway, caller: Caller, body: JobCreate) -> Job:
     with gateway.sessions() as session:
         if body.calibration_capture_id is not None:
-            _ready_capture(session, body.calibration_capture_id)
+            _ready_capture(session, caller, body.calibration_capture_id)
         capture_id = body.capture_id or body.calibration_capture_id
         assert capture_id is not None  # JobCreate requires one of them
-        capture = _ready_capture(session, capture_id)
-        job = Job(id=new_id(), capture_id=capture.id, options=_options(session, body),
-                  stages=[], stage_timings={})
+        capture = _ready_capture(session, caller, capture_id)
+        job = Job(id=new_id(), capture_id=capture.id, owner=caller.owner,
+                  options=_options(session, caller, body), stages=[], stage_timings={})
         session.add(job)
         session.commit()
     try:
@@ -111,59 +106,59 @@ def _forget_job(gateway: Gateway, job_id: str) -> None:
 @router.post("", status_code=202, response_model=JobPublic,
              summary="Queue a reconstruction (or a calibration)",
              responses=problem_responses(WRITE, BODY, {
-                 404: "There is no such capture or rig.",
+                 404: "There is no such capture or rig (or another owner's).",
                  409: "The capture is still being validated (`capture-not-ready`).",
                  503: "The broker or the job store is unreachable; nothing was queued."}))
 def create_job(body: JobCreate, response: Response, gateway: GatewayDep,
-               _key: ApiKeyDep) -> JobPublic:
-    job = _create(gateway, body)
+               caller: CallerDep) -> JobPublic:
+    """The job belongs to the key's owner; it may use only captures and rigs the key sees."""
+    job = _create(gateway, caller, body)
     response.headers["Location"] = f"{API_PREFIX}/jobs/{job.id}"
-    return JobPublic.of(job)
+    return JobPublic.of(job, gateway.queues.get)
 
 
 @router.get("", response_model=JobPage, summary="List jobs, newest first",
-            openapi_extra=OPTIONAL_AUTH, responses=problem_responses(READ))
-def list_jobs(session: SessionDep, _read: ReadAccessDep, limit: PageLimit = 20,
+            responses=problem_responses(READ))
+def list_jobs(session: SessionDep, caller: CallerDep, gateway: GatewayDep, limit: PageLimit = 20,
               offset: PageOffset = 0, state: JobState | None = None,
               capture_id: Annotated[str | None, Query(pattern=ID_PATTERN)] = None) -> JobPage:
-    query = select(Job)
+    query = select(Job) if caller.admin else select(Job).where(Job.owner == caller.owner)
     if state is not None:
         query = query.where(Job.state == state)
     if capture_id is not None:
         query = query.where(Job.capture_id == capture_id)
     rows, total = fetch_page(session, query, (Job.created_at.desc(), Job.id), limit, offset)
-    return JobPage(items=[JobPublic.of(r) for r in rows], total=total, limit=limit,
-                   offset=offset)
+    return JobPage(items=[JobPublic.of(r, gateway.queues.get) for r in rows], total=total,
+                   limit=limit, offset=offset)
 
 
 _JOB_BY_ID = select(Job.__table__).where(Job.__table__.c.id == bindparam("job_id"))
 
 
-@router.get("/{job_id}", response_model=JobPublic, openapi_extra=OPTIONAL_AUTH,
-            responses=problem_responses(READ, _NO_JOB))
-async def get_job(job_id: JobId, request: Request, gateway: GatewayDep,
-                  credentials: BearerDep) -> Response:
-    # The hottest endpoint (clients poll it), kept lean: no thread hop (the primary-key read
-    # takes well under a millisecond, so it runs on the event loop), a compiled Core query
-    # instead of the ORM, and one serialisation.
-    if gateway.settings.require_auth_for_reads:
-        await read_access(gateway, credentials)
+@router.get("/{job_id}", response_model=JobPublic, responses=problem_responses(READ, _NO_JOB))
+async def get_job(job_id: JobId, gateway: GatewayDep, credentials: BearerDep) -> Response:
+    # The hottest endpoint (clients poll it), kept lean: no thread hop (the key and job reads
+    # take well under a millisecond each, so they run on the event loop), compiled Core
+    # queries instead of the ORM, and one serialisation.
+    caller = authenticate(gateway, credentials)
     with gateway.engine.connect() as conn:
         row = conn.execute(_JOB_BY_ID, {"job_id": job_id}).first()
-    if row is None:
+    if row is None or not caller.sees(row.owner):
         raise _not_found(job_id)
-    return Response(JobPublic.of(row).model_dump_json(), media_type="application/json")
+    # A job that waits looks up the consumed queues, cached for a couple of seconds.
+    return Response(JobPublic.of(row, gateway.queues.get).model_dump_json(),
+                    media_type="application/json")
 
 
 @router.delete("/{job_id}", response_model=JobPublic, summary="Cancel a job",
                responses=problem_responses(WRITE, _NO_JOB, {
                    409: "The job has already succeeded or failed (`job-finished`)."}))
-def cancel_job(job_id: JobId, gateway: GatewayDep, _key: ApiKeyDep) -> JobPublic:
+def cancel_job(job_id: JobId, gateway: GatewayDep, caller: CallerDep) -> JobPublic:
     """Stops the job: a queued stage never starts, a running one stops at its next progress
     report (or at its end); artifacts already computed are kept for later jobs."""
     with gateway.sessions() as session:
         row = session.get(Job, job_id, with_for_update=True)
-        if row is None:
+        if row is None or not caller.sees(row.owner):
             raise _not_found(job_id)
         if row.state in ("succeeded", "failed"):
             raise ProblemError(409, f"Job {job_id} has already {row.state}; nothing to cancel.",
@@ -177,13 +172,16 @@ def cancel_job(job_id: JobId, gateway: GatewayDep, _key: ApiKeyDep) -> JobPublic
         return JobPublic.of(row)
 
 
-def _snapshot(gateway: Gateway, job_id: str) -> JobPublic | None:
+def _snapshot(gateway: Gateway, job_id: str, caller: Caller) -> JobPublic | None:
     with gateway.sessions() as session:
         row = session.get(Job, job_id)
-        return None if row is None else JobPublic.of(row)
+        if row is None or not caller.sees(row.owner):
+            return None
+        return JobPublic.of(row, gateway.queues.get)
 
 
-async def _events(request: Request, gateway: Gateway, first: JobPublic) -> AsyncIterator[str]:
+async def _events(request: Request, gateway: Gateway, caller: Caller, first: JobPublic
+                  ) -> AsyncIterator[str]:
     last = ""
     current: JobPublic | None = first
     quiet_since = time.monotonic()
@@ -202,21 +200,22 @@ async def _events(request: Request, gateway: Gateway, first: JobPublic) -> Async
         if await request.is_disconnected():
             return
         await asyncio.sleep(EVENT_POLL_S)
-        current = await run_in_threadpool(_snapshot, gateway, first.id)
+        current = await run_in_threadpool(_snapshot, gateway, first.id, caller)
 
 
 @router.get("/{job_id}/events", summary="Job progress as server-sent events",
-            response_class=StreamingResponse, openapi_extra=OPTIONAL_AUTH, responses={
+            response_class=StreamingResponse, responses={
                 200: {"content": {"text/event-stream": {"schema": _EVENT_STREAM}},
                       "description": "`event: job` with the job as JSON on every change; the "
                                      "stream ends once the job has finished."},
                 **problem_responses(READ, _NO_JOB)})
 async def job_events(job_id: JobId, request: Request, gateway: GatewayDep,
-                     _read: ReadAccessDep) -> StreamingResponse:
-    first = await run_in_threadpool(_snapshot, gateway, job_id)
+                     caller: CallerDep) -> StreamingResponse:
+    first = await run_in_threadpool(_snapshot, gateway, job_id, caller)
     if first is None:
         raise _not_found(job_id)
-    return StreamingResponse(_events(request, gateway, first), media_type="text/event-stream",
+    return StreamingResponse(_events(request, gateway, caller, first),
+                             media_type="text/event-stream",
                              headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
 
 

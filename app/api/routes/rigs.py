@@ -12,21 +12,22 @@ from fastapi import APIRouter, Path, Query, Response
 from fastapi.responses import JSONResponse
 from sqlalchemy import select
 
-from app.api.deps import ApiKeyDep, ReadAccessDep, SessionDep
+from app.api.deps import CallerDep, SessionDep
 from app.api.pagination import PageLimit, PageOffset, fetch_page
-from app.core.problems import BODY, OPTIONAL_AUTH, READ, WRITE, ProblemError, problem_responses
+from app.core.problems import BODY, READ, WRITE, ProblemError, problem_responses
+from app.core.security import Caller
 from app.schemas import API_PREFIX, ID_PATTERN, RigCreate, RigPage, RigPublic
 from workers.models import Rig, new_id
 
 router = APIRouter(prefix="/rigs", tags=["rigs"])
 
-_NO_RIG = {404: "There is no such rig."}
+_NO_RIG = {404: "There is no such rig (or another owner's)."}
 RigId = Annotated[str, Path(pattern=ID_PATTERN, description="A rig id.")]
 
 
-def find_rig(session: SessionDep, rig_id: str) -> Rig:
+def find_rig(session: SessionDep, caller: Caller, rig_id: str) -> Rig:
     row = session.get(Rig, rig_id)
-    if row is None:
+    if row is None or not caller.sees(row.owner):
         raise ProblemError(404, f"There is no rig {rig_id}; upload one with POST "
                            f"{API_PREFIX}/rigs or calibrate with a job's "
                            "calibration_capture_id.", kind="not-found")
@@ -39,8 +40,9 @@ def find_rig(session: SessionDep, rig_id: str) -> Rig:
                       "finite 4x4 rigid transform or a camera id is malformed "
                       "(`validation-error`)."}))
 def create_rig(body: RigCreate, response: Response, session: SessionDep,
-               _key: ApiKeyDep) -> RigPublic:
-    row = Rig(id=new_id(), name=body.name, cameras=sorted(body.world_from_depth),
+               caller: CallerDep) -> RigPublic:
+    row = Rig(id=new_id(), name=body.name, owner=caller.owner,
+              cameras=sorted(body.world_from_depth),
               document=body.document(), source="upload")
     session.add(row)
     session.commit()
@@ -49,12 +51,12 @@ def create_rig(body: RigCreate, response: Response, session: SessionDep,
 
 
 @router.get("", response_model=RigPage, summary="List rigs, newest first",
-            openapi_extra=OPTIONAL_AUTH, responses=problem_responses(READ))
-def list_rigs(session: SessionDep, _read: ReadAccessDep, limit: PageLimit = 20,
+            responses=problem_responses(READ))
+def list_rigs(session: SessionDep, caller: CallerDep, limit: PageLimit = 20,
               offset: PageOffset = 0,
               name: Annotated[str | None, Query(min_length=1, max_length=100)] = None
               ) -> RigPage:
-    query = select(Rig)
+    query = select(Rig) if caller.admin else select(Rig).where(Rig.owner == caller.owner)
     if name is not None:
         query = query.where(Rig.name == name)
     rows, total = fetch_page(session, query, (Rig.created_at.desc(), Rig.id), limit, offset)
@@ -62,17 +64,15 @@ def list_rigs(session: SessionDep, _read: ReadAccessDep, limit: PageLimit = 20,
                    offset=offset)
 
 
-@router.get("/{rig_id}", response_model=RigPublic, openapi_extra=OPTIONAL_AUTH,
-            responses=problem_responses(READ, _NO_RIG))
-def get_rig(rig_id: RigId, session: SessionDep, _read: ReadAccessDep) -> RigPublic:
-    return RigPublic.of(find_rig(session, rig_id))
+@router.get("/{rig_id}", response_model=RigPublic, responses=problem_responses(READ, _NO_RIG))
+def get_rig(rig_id: RigId, session: SessionDep, caller: CallerDep) -> RigPublic:
+    return RigPublic.of(find_rig(session, caller, rig_id))
 
 
 @router.get("/{rig_id}/rig.json", summary="The rig file, as `volumesh calibrate` writes it",
-            openapi_extra=OPTIONAL_AUTH,
             responses={200: {"content": {"application/json": {"schema": {"type": "object"}}}},
                        **problem_responses(READ, _NO_RIG)})
-def get_rig_file(rig_id: RigId, session: SessionDep, _read: ReadAccessDep) -> JSONResponse:
-    row = find_rig(session, rig_id)
+def get_rig_file(rig_id: RigId, session: SessionDep, caller: CallerDep) -> JSONResponse:
+    row = find_rig(session, caller, rig_id)
     return JSONResponse(row.document, headers={
         "Content-Disposition": f'attachment; filename="rig-{row.id}.json"'})
