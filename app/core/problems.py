@@ -42,6 +42,13 @@ _HEADERS = {401: ("WWW-Authenticate", "`Bearer realm=\"volumesh\"`."),
             503: ("Retry-After", "Seconds to wait before trying again.")}
 
 
+def located(status: int, description: str) -> dict[int | str, dict[str, Any]]:
+    """OpenAPI ``responses=`` entry of a success that names what it made in ``Location``."""
+    return {status: {"description": description, "headers": {"Location": {
+        "description": "The URL of what was made.", "required": True,
+        "schema": {"type": "string"}}}}}
+
+
 def problem_responses(*statuses: dict[int, str]) -> dict[int | str, dict[str, Any]]:
     """OpenAPI ``responses=`` declaring each status (later dicts win) with a problem+json body."""
     merged: dict[int, str] = {}

@@ -33,6 +33,9 @@ EXCLUDED_CHECKS: dict[str, list[Any]] = {
     "POST /api/v1/jobs": [positive_data_acceptance],
     # each pose a rigid 4x4 transform (an orthonormal block), and camera ids of one shape
     "POST /api/v1/rigs": [positive_data_acceptance],
+    # its 503 is the readiness report, not a failure: the fixture runs no stage worker, so no
+    # worker consumes the cpu and gpu queues (tests/app/test_api.py checks that answer)
+    "GET /readyz": [not_a_server_error],
 }
 
 
@@ -85,6 +88,15 @@ def _strategies(operation: schemathesis.APIOperation, known: dict[str, str]
         yield operation.as_strategy(path_parameters=ids)
 
 
+def _keys(service: Service, case: schemathesis.Case) -> list[dict[str, str]]:
+    """Headers to call a case with: the service's key in place of the bearer token the case
+    was generated with, and the case as generated (a made-up key, or none). A case generated
+    without the header it requires stays without it."""
+    if "Authorization" in (case.headers or {}):
+        return [service.auth, {}]
+    return [{}]
+
+
 def test_schema_covers_the_api(service: Service) -> None:
     names = {f"{op.method.upper()} {op.path}" for op in _operations(service)}
     assert {"POST /api/v1/captures", "POST /api/v1/jobs", "GET /api/v1/jobs/{job_id}",
@@ -98,7 +110,7 @@ def _run(service: Service, strategy: SearchStrategy[schemathesis.Case],
     @settings(max_examples=CONTRACT_EXAMPLES, deadline=None, database=None,
               suppress_health_check=list(HealthCheck))
     def fuzz(case: schemathesis.Case) -> None:
-        for headers in (service.auth, {}):
+        for headers in _keys(service, case):
             response = case.call(headers=headers)
             case.validate_response(response, headers=headers, excluded_checks=excluded)
 
@@ -120,11 +132,14 @@ def test_the_api_keeps_its_contract(service: Service) -> None:
 @pytest.mark.slow
 def test_no_server_errors(service: Service) -> None:
     for operation in _operations(service):
+        if not_a_server_error in EXCLUDED_CHECKS.get(operation.label, []):
+            continue
+
         @given(case=operation.as_strategy())
         @settings(max_examples=EXAMPLES_PER_OPERATION, deadline=None, database=None,
                   suppress_health_check=list(HealthCheck))
         def fuzz(case: schemathesis.Case) -> None:
-            for headers in (service.auth, {}):
+            for headers in _keys(service, case):
                 response = case.call(headers=headers)
                 case.validate_response(response, checks=[not_a_server_error])
 

@@ -104,6 +104,7 @@ def test_a_finished_job_leaves_its_asset_and_no_stage_outputs(tmp_path: Path) ->
         wait_for(lambda: client.get("/readyz").status_code == 200, 60,
                  f"serve to be ready\n{serve.tail()}", interval_s=0.2)
         auth = {"Authorization": f"Bearer {(data_dir / 'api-key.txt').read_text().strip()}"}
+        client.headers.update(auth)
         capture = make_capture_zip(tmp_path, cameras=4, width=160, height=144)
         upload = client.post("/api/v1/captures", headers=auth, files={
             "file": ("capture.zip", capture.read_bytes(), "application/zip")})
@@ -125,6 +126,7 @@ def test_a_finished_job_leaves_its_asset_and_no_stage_outputs(tmp_path: Path) ->
     storage = data_dir / "storage"
     kept = sorted(str(p.relative_to(storage)) for p in storage.rglob("*") if p.is_file())
     job_id = done["id"]
-    assert kept == [f"assets/{job_id}/mesh.glb", f"assets/{job_id}/mesh.ply",
-                    f"assets/{job_id}/report.json", f"captures/{sha256}.zip"]
+    assert kept[:3] == [f"assets/{job_id}/mesh.glb", f"assets/{job_id}/mesh.ply",
+                        f"assets/{job_id}/report.json"]
+    assert len(kept) == 4 and re.fullmatch(rf"captures/{sha256}-[0-9a-f]+\.zip", kept[3])
     assert not list((data_dir / "cache").rglob(f"*{sha256}*"))

@@ -23,7 +23,7 @@ from app.api.deps import CallerDep, GatewayDep, SessionDep
 from app.api.pagination import PageLimit, PageOffset, fetch_page
 from app.core.capture_store import forget
 from app.core.context import Gateway
-from app.core.problems import BODY, READ, WRITE, ProblemError, problem_responses
+from app.core.problems import BODY, READ, WRITE, ProblemError, located, problem_responses
 from app.core.security import can_use_capture
 from app.core.uploads import ReceivedUpload, receive_upload
 from app.core.zipcheck import ZipLimits, check_zip
@@ -157,7 +157,8 @@ async def _await_validation(gateway: Gateway, capture_id: str) -> Capture:
 
 @router.post("", status_code=201, response_model=CapturePublic, openapi_extra=_UPLOAD_BODY,
              summary="Upload a capture zip",
-             responses=problem_responses(WRITE, BODY, _UPLOAD_PROBLEMS))
+             responses={**located(201, "The capture, read whole and ready."),
+                        **problem_responses(WRITE, BODY, _UPLOAD_PROBLEMS)})
 async def upload_capture(request: Request, response: Response, gateway: GatewayDep,
                          caller: CallerDep) -> CapturePublic:
     """Stores the capture (once per content) after a worker has read it whole; it belongs to

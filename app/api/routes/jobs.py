@@ -16,7 +16,7 @@ from starlette.concurrency import run_in_threadpool
 from app.api.deps import BearerDep, CallerDep, GatewayDep, SessionDep, authenticate
 from app.api.pagination import PageLimit, PageOffset, fetch_page
 from app.core.context import Gateway
-from app.core.problems import BODY, READ, WRITE, ProblemError, problem_responses
+from app.core.problems import BODY, READ, WRITE, ProblemError, located, problem_responses
 from app.core.security import Caller, can_use_capture
 from app.schemas import API_PREFIX, ID_PATTERN, JobCreate, JobPage, JobPublic, JobState
 from workers.celery_app import QUEUE_CPU, TASK_STAGE
@@ -105,10 +105,10 @@ def _forget_job(gateway: Gateway, job_id: str) -> None:
 
 @router.post("", status_code=202, response_model=JobPublic,
              summary="Queue a reconstruction (or a calibration)",
-             responses=problem_responses(WRITE, BODY, {
+             responses={**located(202, "The job, queued."), **problem_responses(WRITE, BODY, {
                  404: "There is no such capture or rig (or another owner's).",
                  409: "The capture is still being validated (`capture-not-ready`).",
-                 503: "The broker or the job store is unreachable; nothing was queued."}))
+                 503: "The broker or the job store is unreachable; nothing was queued."})})
 def create_job(body: JobCreate, response: Response, gateway: GatewayDep,
                caller: CallerDep) -> JobPublic:
     """The job belongs to the key's owner; it may use only captures and rigs the key sees."""

@@ -14,7 +14,7 @@ from sqlalchemy import select
 
 from app.api.deps import CallerDep, SessionDep
 from app.api.pagination import PageLimit, PageOffset, fetch_page
-from app.core.problems import BODY, READ, WRITE, ProblemError, problem_responses
+from app.core.problems import BODY, READ, WRITE, ProblemError, located, problem_responses
 from app.core.security import Caller
 from app.schemas import API_PREFIX, ID_PATTERN, RigCreate, RigPage, RigPublic
 from workers.models import Rig, new_id
@@ -35,10 +35,10 @@ def find_rig(session: SessionDep, caller: Caller, rig_id: str) -> Rig:
 
 
 @router.post("", status_code=201, response_model=RigPublic, summary="Save a rig file",
-             responses=problem_responses(WRITE, BODY, {
+             responses={**located(201, "The rig, saved."), **problem_responses(WRITE, BODY, {
                  422: "A bad body: the detail names the camera and why when a pose is not a "
                       "finite 4x4 rigid transform or a camera id is malformed "
-                      "(`validation-error`)."}))
+                      "(`validation-error`)."})})
 def create_rig(body: RigCreate, response: Response, session: SessionDep,
                caller: CallerDep) -> RigPublic:
     row = Rig(id=new_id(), name=body.name, owner=caller.owner,

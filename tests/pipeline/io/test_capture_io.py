@@ -142,6 +142,17 @@ def _write_file(rel: str, data: bytes) -> Callable[[Path], Path]:
     return apply
 
 
+def _jpeg_cut_short(rel_png: str) -> Callable[[Path], Path]:
+    """The colour PNG ``rel_png`` as a JPEG whose last third is missing."""
+    def apply(cap: Path) -> Path:
+        png = cap / rel_png
+        data = cv2.imencode(".jpg", cv2.imread(str(png)))[1].tobytes()
+        png.with_suffix(".jpg").write_bytes(data[: len(data) * 2 // 3])
+        png.unlink()
+        return cap
+    return apply
+
+
 def _image(rel: str, image: np.ndarray) -> Callable[[Path], Path]:
     return _write_file(rel, cv2.imencode(".png", image)[1].tobytes())
 
@@ -278,3 +289,10 @@ def test_corrupt_pixels_are_reported_when_read(capture_dir: Path) -> None:
 def test_unknown_frame_is_refused(capture_dir: Path) -> None:
     with open_capture(capture_dir) as reader, pytest.raises(ValueError, match="no frame 7"):
         reader.read_frame(7)
+
+
+def test_a_jpeg_cut_short_is_refused_when_read(capture_dir: Path) -> None:
+    path = _jpeg_cut_short("cam0/color/000001.png")(capture_dir)
+    with open_capture(path) as reader, pytest.raises(ValueError) as error:
+        reader.read_frame(1)
+    assert "cam0/color/000001.jpg: image data are corrupt" in str(error.value)
