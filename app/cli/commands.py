@@ -2,6 +2,7 @@
 
 import app.cli.calibrate
 import app.cli.enhance
+import app.cli.import_mkv
 import app.cli.keys
 import app.cli.reconstruct
 import app.cli.serve

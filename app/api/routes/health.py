@@ -1,4 +1,5 @@
-"""GET /healthz (the process answers), /readyz (broker, job store, storage reachable), /metrics."""
+"""GET /healthz (the process answers), /readyz (broker, job store and storage reachable, a live
+worker on every queue), /metrics (for its token or an admin key)."""
 
 from __future__ import annotations
 

@@ -1,0 +1,136 @@
+"""`volumesh import-mkv` speed: eight 10 s Azure Kinect recordings to one capture.
+
+Usage: .venv/bin/python benchmarks/import_mkv.py [--cameras 8] [--seconds 10] [--zip]
+       [--workdir DIR]
+Writes, untimed, one recording per device as k4arecorder lays them out (tests/k4a_recordings):
+NFOV_UNBINNED 640x576 depth and IR, 1280x720 MJPG colour, 30 fps, a master and subordinates
+160 us apart; depth a noisy surface with holes (so that its PNGs cost what real depth's do),
+colour noisy JPEGs of real-world size. Then times the command itself, `python -m app import-mkv
+... --out OUT`, in a child process, and prints one JSON object: wall seconds per recorded
+second (target <= 1, real time), the child's peak memory, sizes and the load average. The
+recordings are read from the page cache, as right after they were copied or written.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from tests.k4a_recordings import RecordingSpec, write_recording  # noqa: E402
+
+WIDTH, HEIGHT = 640, 576
+# The command as `python -m app` runs it, reporting its own peak memory when it ends (VmHWM:
+# unlike ru_maxrss, not inherited from this process, which holds the synthesis).
+_COMMAND = ("import atexit, sys\n"
+            "def peak():\n"
+            "    status = open('/proc/self/status').read()\n"
+            "    print('VmHWM', status.split('VmHWM:')[1].split()[0], file=sys.stderr)\n"
+            "atexit.register(peak)\n"
+            "from app.cli import main\n"
+            "main()\n")
+NOISE_FIELDS = 8
+
+
+def _scene(seed: int) -> tuple[NDArray[np.float64], list[NDArray[np.float64]],
+                               list[NDArray[np.bool_]]]:
+    """A sphere in front of a wall (mm), noise fields (sigma 2 mm) and hole masks to cycle."""
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[0:HEIGHT, 0:WIDTH].astype(np.float64)
+    r2 = ((x - WIDTH / 2) ** 2 + (y - HEIGHT / 2) ** 2) / (HEIGHT / 3) ** 2
+    base = np.where(r2 < 1.0, 1500.0 - 400.0 * np.sqrt(np.clip(1.0 - r2, 0, 1)), 3000.0)
+    noise = [rng.normal(0.0, 2.0, base.shape) for _ in range(NOISE_FIELDS)]
+    holes = [rng.random(base.shape) < 0.05 for _ in range(NOISE_FIELDS)]
+    return base, noise, holes
+
+
+def _recordings(folder: Path, cameras: int, seconds: int) -> list[Path]:
+    frames = seconds * 30
+    rng = np.random.default_rng(0)
+    pictures = [np.clip(cv2.GaussianBlur(rng.integers(0, 256, (720, 1280, 3)).astype(np.uint8),
+                                         (0, 0), 1.5).astype(int) + 40 * i, 0, 255)
+                .astype(np.uint8) for i in range(6)]
+    paths = []
+    for device in range(cameras):
+        base, noise, holes = _scene(device)
+
+        def depth(k: int, base: Any = base, noise: Any = noise, holes: Any = holes
+                  ) -> NDArray[np.uint16]:
+            mm = base + 3.0 * np.sin(k / 10.0) + noise[k % NOISE_FIELDS]
+            mm[holes[(k * 3) % NOISE_FIELDS]] = 0
+            return np.rint(mm).astype(np.uint16)
+
+        spec = RecordingSpec(
+            depth_mode="NFOV_UNBINNED", frame_count=frames, distinct_colors=len(pictures),
+            sync_mode="MASTER" if device == 0 else "SUBORDINATE",
+            subordinate_delay_ns=160_000 * device, serial=f"{device + 1:012d}",
+            start_offset_ns=1_000_000_000 + 160_000 * device)
+        paths.append(write_recording(folder / f"device{device}.mkv", spec, depth,
+                                     lambda k: pictures[k % len(pictures)]))
+    return paths
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--cameras", type=int, default=8)
+    parser.add_argument("--seconds", type=int, default=10)
+    parser.add_argument("--zip", action="store_true", help="write OUT as a .zip")
+    parser.add_argument("--workdir", type=Path, default=None,
+                        help="keep the recordings here (reused when present)")
+    args = parser.parse_args()
+    workdir = args.workdir or Path(tempfile.mkdtemp(prefix="volumesh-mkv-bench-"))
+    workdir.mkdir(parents=True, exist_ok=True)
+    started = time.perf_counter()
+    paths = sorted(workdir.glob("device*.mkv"))[: args.cameras]
+    if len(paths) < args.cameras:
+        paths = _recordings(workdir, args.cameras, args.seconds)
+    synth_s = time.perf_counter() - started
+    out = workdir / ("capture.zip" if args.zip else "capture")
+    if out.is_dir():
+        shutil.rmtree(out)
+    out.unlink(missing_ok=True)
+    load = os.getloadavg()[0]
+    started = time.perf_counter()
+    result = subprocess.run([sys.executable, "-c", _COMMAND, "import-mkv", *map(str, paths),
+                             "--out", str(out)], cwd=ROOT, capture_output=True, text=True)
+    wall_s = time.perf_counter() - started
+    child = resource.getrusage(resource.RUSAGE_CHILDREN)
+    if result.returncode != 0:
+        raise SystemExit(result.stderr)
+    peak_kb = int(result.stderr.rsplit("VmHWM", 1)[1].split()[0])
+    out_bytes = (out.stat().st_size if out.is_file()
+                 else sum(p.stat().st_size for p in out.rglob("*") if p.is_file()))
+    print(json.dumps({
+        "cameras": args.cameras, "recorded_s": args.seconds, "frames_per_camera": 30 * args.seconds,
+        "input_mb": round(sum(p.stat().st_size for p in paths) / 2**20),
+        "output_mb": round(out_bytes / 2**20), "zip": args.zip,
+        "wall_s": round(wall_s, 2), "cpu_s": round(child.ru_utime + child.ru_stime, 2),
+        "seconds_per_recorded_second": round(wall_s / args.seconds, 3),
+        "target_seconds_per_recorded_second": 1.0,
+        "peak_rss_mb": round(peak_kb / 1024),
+        "synth_s": round(synth_s, 1), "summary": result.stdout.strip().splitlines()[0],
+        "load_average_before": round(load, 2), "cpus": os.cpu_count(),
+        "python": platform.python_version(),
+    }, indent=1))
+    if args.workdir is None:
+        shutil.rmtree(workdir, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()
