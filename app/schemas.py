@@ -2,24 +2,22 @@
 
 from __future__ import annotations
 
-import math
-import re
 from collections.abc import Callable
 from datetime import UTC, datetime
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from app.core.poses import Matrix4, check_poses
 from app.core.stage_settings import check_settings, stage_settings
 from workers.models import Asset, Capture, Job, Rig
 from workers.presence import waiting_reason
 
 API_PREFIX = "/api/v1"
 ID_PATTERN = r"^[0-9a-f]{32}$"
-CAMERA_ID_PATTERN = r"[A-Za-z0-9_-]{1,32}"  # as pipeline.capture (not imported here)
 RIG_FORMAT_ID: Literal["volumesh.rig/1"] = "volumesh.rig/1"
 JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
-AssetFileName = Literal["mesh.glb", "mesh.ply", "report.json"]
+AssetFileName = Literal["mesh.glb", "mesh.ply", "report.json", "sequence.json"]
 
 
 def _utc(value: datetime | None) -> datetime | None:
@@ -51,40 +49,20 @@ _SECTION = ("Settings of one pipeline stage by field name (e.g. meshing: {\"pois
             "the values' ranges, and the job fails with a message naming a bad one.")
 
 
-Matrix4 = list[list[float]]
+class FrameRange(BaseModel):
+    """Capture frames ``first`` to ``last``, both included (frame indices as capture.json
+    lists them)."""
 
+    model_config = ConfigDict(extra="forbid")
 
-def check_rigid(matrix: Matrix4, where: str) -> Matrix4:
-    """The matrix if it is a finite 4x4 rigid transform, else ValueError naming ``where``.
+    first: int = Field(ge=0, description="The first frame index to reconstruct.")
+    last: int = Field(ge=0, description="The last frame index to reconstruct (included).")
 
-    The pipeline checks poses again with numpy; the gateway keeps its own few lines so that it
-    never imports the pipeline, and a bad rig is refused at once with a 422."""
-    if len(matrix) != 4 or any(len(row) != 4 for row in matrix):
-        raise ValueError(f"{where}: must be a 4x4 nested list")
-    if not all(math.isfinite(x) for row in matrix for x in row):
-        raise ValueError(f"{where}: must hold finite numbers")
-    if any(abs(x - y) > 1e-9 for x, y in zip(matrix[3], (0, 0, 0, 1), strict=True)):
-        raise ValueError(f"{where}: last row must be [0,0,0,1]")
-    rows = [row[:3] for row in matrix[:3]]
-    columns = list(zip(*rows, strict=True))
-    for i in range(3):
-        for j in range(3):
-            dot = sum(a * b for a, b in zip(columns[i], columns[j], strict=True))
-            if abs(dot - (1.0 if i == j else 0.0)) > 1e-3:
-                raise ValueError(f"{where}: is not rigid (its 3x3 block is not a rotation)")
-    (a, b, c), (d, e, f), (g, h, i_) = rows
-    if a * (e * i_ - f * h) - b * (d * i_ - f * g) + c * (d * h - e * g) < 0:
-        raise ValueError(f"{where}: is a reflection, not a rotation")
-    return matrix
-
-
-def _check_poses(poses: dict[str, Matrix4] | None, name: str) -> dict[str, Matrix4] | None:
-    for camera_id, matrix in (poses or {}).items():
-        if not re.fullmatch(CAMERA_ID_PATTERN, camera_id):
-            raise ValueError(f"{name}: camera id {camera_id!r} does not match "
-                             f"{CAMERA_ID_PATTERN}")
-        check_rigid(matrix, f"{name}.{camera_id}")
-    return poses
+    @model_validator(mode="after")
+    def _ordered(self) -> FrameRange:
+        if self.last < self.first:
+            raise ValueError(f"frames: last ({self.last}) comes before first ({self.first})")
+        return self
 
 
 class JobCreate(BaseModel):
@@ -110,6 +88,12 @@ class JobCreate(BaseModel):
         default=None, gt=0.0005, le=0.5, description="Voxel refinement cell size, metres.")
     frame_index: int | None = Field(
         default=None, ge=0, description="The capture frame to reconstruct (default: the first).")
+    frames: Literal["all"] | FrameRange | None = Field(
+        default=None, description="Reconstruct many frames as a sequence: \"all\" or "
+        "{\"first\": F, \"last\": L}. Each frame runs as its own job (a frame job, listed "
+        "with GET /jobs?parent_id=ID) in parallel; this job's asset is sequence.json, the "
+        "viewer's manifest of the frames' meshes. A range outside the capture's frames is a "
+        "422. Leave out to reconstruct one frame (`frame_index`).")
     world_from_depth: dict[str, list[list[float]]] | None = Field(
         default=None, max_length=64,
         description="Camera poses replacing the capture's (a rig.json's world_from_depth): "
@@ -149,7 +133,7 @@ class JobCreate(BaseModel):
         default=None, ge=0, le=10, description="Draco speed/size trade-off, 0..10.")
 
     _poses = field_validator("world_from_depth")(
-        lambda v: _check_poses(v, "world_from_depth"))
+        lambda v: check_poses(v, "world_from_depth"))
 
     @model_validator(mode="after")
     def _one_source_of_poses(self) -> JobCreate:
@@ -163,6 +147,10 @@ class JobCreate(BaseModel):
                              "for a job that only calibrates)")
         if self.calibration_capture_id is None and (self.rig_name or self.calibration):
             raise ValueError("rig_name and calibration need calibration_capture_id")
+        if self.frames is not None and (self.frame_index is not None
+                                        or self.calibration_capture_id is not None):
+            raise ValueError("frames reconstructs a sequence: give neither frame_index nor "
+                             "calibration_capture_id with it (calibrate first, then use rig_id)")
         for section in stage_settings():
             values = getattr(self, section)
             if values is not None:
@@ -174,6 +162,7 @@ class JobCreate(BaseModel):
         return self.capture_id is None
 
     def options(self) -> dict[str, Any]:
+        """The job's options (a sequence's frames take them too, with their frame_index)."""
         options = self.model_dump(exclude={"capture_id"}, exclude_none=True)
         if self.calibrate_only:
             options["calibrate_only"] = True
@@ -200,6 +189,18 @@ class JobPublic(BaseModel):
     waiting_reason: str | None = Field(
         default=None, description="Why the job waits, when no live worker consumes the queue "
         "its next stage waits on (e.g. no worker consumes the 'gpu' queue); else null.")
+    parent_id: str | None = Field(
+        default=None, description="The sequence job this job reconstructs one frame of.")
+    frame_index: int | None = Field(
+        default=None, description="The capture frame a frame job reconstructs.")
+    frames_total: int | None = Field(
+        default=None, description="A sequence job's frames (its frame jobs); null for others.")
+    frames_done: int | None = Field(
+        default=None, description="A sequence job's frames that succeeded.")
+    frames_failed: int | None = Field(
+        default=None, description="A sequence job's frames that failed (or were cancelled).")
+    failed_frames: dict[str, str] | None = Field(
+        default=None, description="A sequence job's failed frames: frame index -> why.")
 
     @classmethod
     def of(cls, row: Job | Any,
@@ -214,7 +215,12 @@ class JobPublic(BaseModel):
             links["rig"] = f"{API_PREFIX}/rigs/{options['rig_id']}"
         elif options.get("calibration_capture_id") and row.done_count > 0:
             links["rig"] = f"{API_PREFIX}/rigs/{row.id}"  # saved once calibrate (stage 0) is done
-        if row.asset_id:
+        _sequence_links(row, links)
+        if row.asset_id and row.frames_total is not None:
+            base = f"{API_PREFIX}/assets/{row.asset_id}"
+            links.update({"asset": base, "sequence": f"{base}/sequence.json",
+                          "viewer": f"/?sequence={base}/sequence.json"})
+        elif row.asset_id:
             base = f"{API_PREFIX}/assets/{row.asset_id}"
             links.update({"asset": base, "mesh_glb": f"{base}/mesh.glb",
                           "mesh_ply": f"{base}/mesh.ply", "report": f"{base}/report.json"})
@@ -225,7 +231,18 @@ class JobPublic(BaseModel):
                    created_at=_utc(row.created_at), updated_at=_utc(row.updated_at),
                    started_at=_utc(row.started_at), finished_at=_utc(row.finished_at),
                    links=links, waiting_reason=None if consumed_queues is None else
-                   waiting_reason(row, consumed_queues))
+                   waiting_reason(row, consumed_queues),
+                   parent_id=row.parent_id, frame_index=row.frame_index,
+                   frames_total=row.frames_total, frames_done=row.frames_done,
+                   frames_failed=row.frames_failed, failed_frames=row.frame_errors)
+
+
+def _sequence_links(row: Job | Any, links: dict[str, str]) -> None:
+    """A frame job links its sequence; a sequence job lists its frame jobs."""
+    if row.parent_id:
+        links["parent"] = f"{API_PREFIX}/jobs/{row.parent_id}"
+    if row.frames_total is not None:
+        links["frames"] = f"{API_PREFIX}/jobs?parent_id={row.id}"
 
 
 class JobPage(BaseModel):
@@ -299,7 +316,7 @@ class RigCreate(BaseModel):
         description="Camera id -> 4x4 rigid transform from its depth frame to the world, metres.")
 
     _poses = field_validator("world_from_depth")(
-        lambda v: _check_poses(v, "world_from_depth"))
+        lambda v: check_poses(v, "world_from_depth"))
 
     def document(self) -> dict[str, Any]:
         """The rig.json document to store (the name is kept apart)."""

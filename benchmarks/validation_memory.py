@@ -63,7 +63,7 @@ def _validate(path: str, max_image_pixels: int, results: Any) -> None:
     started = time.perf_counter()
     try:
         cameras, frames = read_whole(Path(path), capture_limits(settings))
-        outcome, message = "accepted", f"{cameras} cameras, {frames} frames"
+        outcome, message = "accepted", f"{cameras} cameras, {len(frames)} frames"
     except ValueError as exc:
         outcome, message = "refused", str(exc)
     results.put({"outcome": outcome, "message": message,

@@ -39,16 +39,16 @@ def capture_limits(settings: Settings) -> ArchiveLimits:
                          max_image_pixels=settings.max_image_pixels)
 
 
-def read_whole(path: Path, limits: ArchiveLimits) -> tuple[int, int]:
+def read_whole(path: Path, limits: ArchiveLimits) -> tuple[int, tuple[int, ...]]:
     """Opens a capture and decodes every image, one at a time (so memory holds one image,
-    not a frame); returns (cameras, frames). ValueError names what is wrong."""
+    not a frame); returns (cameras, frame indices). ValueError names what is wrong."""
     from pipeline.io.capture_io import open_capture
 
     with open_capture(path, limits) as reader:
         for frame in reader.meta.frame_indices:
             for camera_id in reader.meta.camera_ids:
                 reader.read_view(camera_id, frame)
-        return len(reader.meta.cameras), len(reader.meta.frames)
+        return len(reader.meta.cameras), reader.meta.frame_indices
 
 
 def validate_capture(ctx: WorkerContext, capture_id: str) -> None:
@@ -62,7 +62,7 @@ def validate_capture(ctx: WorkerContext, capture_id: str) -> None:
         return  # the upload was abandoned meanwhile
     path = capture_path(ctx, *found)
     try:
-        cameras, frames = read_whole(path, capture_limits(ctx.settings))
+        cameras, frame_indices = read_whole(path, capture_limits(ctx.settings))
     except ValueError as exc:
         ctx.store.capture_rejected(capture_id, str(exc))
         return
@@ -73,4 +73,4 @@ def validate_capture(ctx: WorkerContext, capture_id: str) -> None:
         ctx.store.capture_rejected(capture_id, f"the capture could not be read "
                                    f"({type(exc).__name__}: {exc})")
         return
-    ctx.store.capture_validated(capture_id, cameras, frames)
+    ctx.store.capture_validated(capture_id, cameras, frame_indices)

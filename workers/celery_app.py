@@ -28,6 +28,8 @@ GPU_STAGES = frozenset({"enhance"})
 
 TASK_STAGE = "volumesh.stage"
 TASK_VALIDATE = "volumesh.validate_capture"
+TASK_SEQUENCE = "volumesh.sequence"
+"""A sequence job's export: its manifest, once every frame is over (`workers.sequence`)."""
 
 
 def queue_for_stage(stage: str) -> str:

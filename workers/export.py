@@ -34,8 +34,9 @@ def _draco_config(options: dict[str, Any]) -> Any:
                           if k in _DRACO_OPTIONS})
 
 
-def export(ctx: WorkerContext, job: JobView, stages: tuple[str, ...]) -> None:
-    """Build the mesh from the stage outputs; store mesh.glb (Draco), mesh.ply, report.json."""
+def export(ctx: WorkerContext, job: JobView, stages: tuple[str, ...]) -> bool:
+    """Build the mesh from the stage outputs; store mesh.glb (Draco), mesh.ply, report.json.
+    True when this call marked the job succeeded."""
     from pipeline.io.gltf_io import encode_glb
     from pipeline.io.mesh_io import write_ply
     from pipeline.stages import mesh_from_artifacts, stage_stats
@@ -64,8 +65,10 @@ def export(ctx: WorkerContext, job: JobView, stages: tuple[str, ...]) -> None:
                      len(glb), seconds)
     files["report.json"] = _put(ctx, asset_id, "report.json",
                                 json.dumps(report, indent=1).encode(), "application/json")
-    if ctx.store.succeed(job.id, asset_id, files, seconds):
-        _let_go(ctx, sha256, job.id)
+    if not ctx.store.succeed(job.id, asset_id, files, seconds):
+        return False
+    _let_go(ctx, sha256, job.id)
+    return True
 
 
 def _let_go(ctx: WorkerContext, sha256: str, job_id: str) -> None:

@@ -15,6 +15,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from workers.leases import lease_free, new_owner
 from workers.models import Asset, Capture, Job, Rig, utcnow
+from workers.sequence import mark_running
 
 LIVE = ("queued", "running")
 
@@ -30,6 +31,10 @@ class JobView:
     done_count: int
     options: dict[str, Any]
     asset_id: str | None
+    parent_id: str | None = None
+    """The sequence job this job is one frame of (`workers.sequence`)."""
+    frames_total: int | None = None
+    """Set on a sequence job: it runs frame jobs, not stages of its own."""
 
 
 class JobStore:
@@ -43,7 +48,8 @@ class JobStore:
                 return None
             return JobView(id=job.id, capture_id=job.capture_id, state=job.state,
                            stages=tuple(job.stages or ()), done_count=job.done_count,
-                           options=dict(job.options or {}), asset_id=job.asset_id)
+                           options=dict(job.options or {}), asset_id=job.asset_id,
+                           parent_id=job.parent_id, frames_total=job.frames_total)
 
     def capture(self, capture_id: str) -> tuple[str, str] | None:
         """(sha256, storage key) of a capture, or None."""
@@ -82,6 +88,7 @@ class JobStore:
             if result.rowcount:
                 session.execute(update(Job).where(Job.id == job_id, Job.started_at.is_(None))
                                 .values(started_at=now))
+                mark_running(session, job_id)
             return bool(result.rowcount)
 
     def progress(self, job_id: str, progress: float) -> str | None:
@@ -112,6 +119,7 @@ class JobStore:
 
     def succeed(self, job_id: str, asset_id: str, files: dict[str, dict[str, Any]],
                 export_seconds: float) -> bool:
+        """Store the job's asset and mark it succeeded; True for the call that did."""
         with self.sessions.begin() as session:
             job = session.get(Job, job_id, with_for_update=True)
             if job is None or job.state not in LIVE:
@@ -159,18 +167,22 @@ class JobStore:
             row.calibration_capture_id = calibration_capture_id
             session.add(row)
 
-    def fail(self, job_id: str, error: str) -> None:
+    def fail(self, job_id: str, error: str) -> bool:
+        """Mark a live job failed with why; True for the call that did."""
         now = utcnow()
         with self.sessions.begin() as session:
-            session.execute(update(Job).where(Job.id == job_id, Job.state.in_(LIVE))
-                            .values(state="failed", error=error[:4000], updated_at=now,
-                                    finished_at=now))
+            result: CursorResult[Any] = session.execute(  # type: ignore[assignment]
+                update(Job).where(Job.id == job_id, Job.state.in_(LIVE))
+                .values(state="failed", error=error[:4000], updated_at=now, finished_at=now))
+            return bool(result.rowcount)
 
-    def capture_validated(self, capture_id: str, cameras: int, frames: int) -> None:
+    def capture_validated(self, capture_id: str, cameras: int,
+                          frame_indices: tuple[int, ...]) -> None:
         with self.sessions.begin() as session:
             row = session.get(Capture, capture_id)
             if row is not None and row.state == "validating":
-                row.state, row.cameras, row.frames, row.error = "ready", cameras, frames, None
+                row.state, row.cameras, row.error = "ready", cameras, None
+                row.frames, row.frame_indices = len(frame_indices), list(frame_indices)
 
     def capture_rejected(self, capture_id: str, error: str) -> None:
         with self.sessions.begin() as session:

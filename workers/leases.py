@@ -34,6 +34,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from workers.celery_app import TASK_STAGE, queue_for_stage
 from workers.models import JOB_STATES, TERMINAL_STATES, Job, utcnow
+from workers.sequence import frame_over
 from workers.settings import Settings
 
 log = logging.getLogger(__name__)
@@ -220,6 +221,7 @@ def sweep_lapsed(sessions: sessionmaker[Session], send: SendTask, settings: Sett
         if outcome == "failed":
             log.warning("job %s failed: %s", lapsed.job_id,
                         give_up_message(lapsed.stage, tries, settings.stage_max_tries))
+            frame_over(sessions, lapsed.job_id, send)  # a frame of a sequence: count it
         else:
             queue = queue_for_stage(lapsed.stage)
             try:

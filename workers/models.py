@@ -67,6 +67,8 @@ class Capture(Base):
     error: Mapped[str | None] = mapped_column(Text, default=None)
     cameras: Mapped[int | None] = mapped_column(Integer, default=None)
     frames: Mapped[int | None] = mapped_column(Integer, default=None)
+    frame_indices: Mapped[list[int] | None] = mapped_column(JSON, default=None)
+    """The frames' indices as capture.json lists them (set when validated)."""
     created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
 
 
@@ -125,6 +127,21 @@ class Job(Base):
     lease_lapses: Mapped[int | None] = mapped_column(Integer, default=None)
     """Tries of the stage at ``stage_index`` whose worker stopped answering (lease lapsed);
     at ``stage_max_tries`` the job fails. Unset: none."""
+    parent_id: Mapped[str | None] = mapped_column(String(32), default=None, index=True)
+    """The sequence job this job reconstructs one frame of (`workers.sequence`); unset for a
+    top-level job."""
+    frame_index: Mapped[int | None] = mapped_column(Integer, default=None)
+    """The capture frame a frame job reconstructs."""
+    frame_counted: Mapped[bool | None] = mapped_column(Boolean, default=None)
+    """Set once a frame job's end is counted in its parent (so it is counted once)."""
+    frames_total: Mapped[int | None] = mapped_column(Integer, default=None)
+    """A sequence job's frame count (its frames are jobs with ``parent_id`` = its id)."""
+    frames_done: Mapped[int | None] = mapped_column(Integer, default=None)
+    """A sequence job's frames that succeeded."""
+    frames_failed: Mapped[int | None] = mapped_column(Integer, default=None)
+    """A sequence job's frames that failed or were cancelled."""
+    frame_errors: Mapped[dict[str, str] | None] = mapped_column(JSON, default=None)
+    """A sequence job's failed frames: frame index (as text) -> why."""
 
 
 class WorkerSeen(Base):

@@ -31,6 +31,7 @@ from workers.export import export
 from workers.jobstore import JobView
 from workers.leases import Heartbeat, new_owner
 from workers.plan import CALIBRATE_STAGE, EXPORT_STAGE, job_config, plan_stages, work_stages
+from workers.sequence import frame_over
 
 log = logging.getLogger(__name__)
 
@@ -79,8 +80,12 @@ def run_step(ctx: WorkerContext, job_id: str, index: int, task_id: str | None,
              send: SendTask) -> None:
     """Run stage ``index`` of the job (or skip it when a duplicate), then queue the next."""
     job = ctx.store.load(job_id)
+    if job is not None and job.parent_id and job.state not in ("queued", "running"):
+        frame_over(ctx.store.sessions, job_id, send)  # counted once; a retry counts a lost one
     if job is None or job.state not in ("queued", "running") or job.done_count > index:
         return
+    if job.frames_total is not None:
+        return  # a sequence runs no stages itself: its frame jobs do (workers.sequence)
     stages = job.stages or ctx.store.set_plan(job_id, plan_stages(job.options))
     if index >= len(stages):
         return
@@ -104,7 +109,8 @@ def _run_leased(ctx: WorkerContext, job: JobView, stages: tuple[str, ...], index
     """Run the stage whose lease this delivery holds, then queue the next."""
     job_id, name = job.id, stages[index]
     if name == EXPORT_STAGE:
-        export(ctx, job, stages)
+        if export(ctx, job, stages):
+            frame_over(ctx.store.sessions, job_id, send)
         return
     started = time.perf_counter()
     if name == CALIBRATE_STAGE:

@@ -16,9 +16,11 @@ from celery.signals import worker_process_init, worker_ready, worker_shutdown
 
 from workers import presence
 from workers.captures import validate_capture
-from workers.celery_app import TASK_STAGE, TASK_VALIDATE
+from workers.celery_app import TASK_SEQUENCE, TASK_STAGE, TASK_VALIDATE
 from workers.context import WorkerContext
-from workers.runner import JobCancelledError, run_step, stage_name
+from workers.runner import JobCancelledError, SendTask, run_step, stage_name
+from workers.sequence import count_ended_frames, frame_over
+from workers.sequence_export import export_sequence
 from workers.settings import Settings, get_settings
 
 log = logging.getLogger(__name__)
@@ -88,30 +90,58 @@ def stage(self: Task, job_id: str, index: int) -> None:
     """Run stage ``index`` of job ``job_id`` and queue the next one."""
     ctx = _context(self)
 
-    def send(name: str, args: list[Any], queue: str) -> str:
-        return str(self.app.send_task(name, args=args, queue=queue, routing_key=queue).id)
+    send = _sender(self)
+
+    def fail(error: str) -> None:
+        if ctx.store.fail(job_id, error):
+            frame_over(ctx.store.sessions, job_id, send)  # a frame of a sequence: count it
 
     try:
         run_step(ctx, job_id, index, self.request.id, send)
     except JobCancelledError:
         log.info("job %s cancelled during stage %d", job_id, index)
     except ValueError as exc:
-        ctx.store.fail(job_id, str(exc))
+        fail(str(exc))
     except SoftTimeLimitExceeded:
-        ctx.store.fail(job_id, f"{stage_name(ctx, job_id, index)} ran longer than the "
-                       f"{ctx.settings.task_soft_time_limit_s} s limit "
-                       "(VOLUMESH_TASK_SOFT_TIME_LIMIT_S)")
+        fail(f"{stage_name(ctx, job_id, index)} ran longer than the "
+             f"{ctx.settings.task_soft_time_limit_s} s limit (VOLUMESH_TASK_SOFT_TIME_LIMIT_S)")
     except _transient_errors() as exc:
         if self.request.retries >= ctx.settings.task_max_retries:
-            ctx.store.fail(job_id, f"{stage_name(ctx, job_id, index)} gave up after "
-                           f"{self.request.retries} retries: {type(exc).__name__}: {exc}")
+            fail(f"{stage_name(ctx, job_id, index)} gave up after "
+                 f"{self.request.retries} retries: {type(exc).__name__}: {exc}")
             return
         log.warning("job %s stage %d: transient %r, retrying", job_id, index, exc)
         raise self.retry(exc=exc, countdown=_backoff_s(self.request.retries),
                          max_retries=ctx.settings.task_max_retries) from exc
     except Exception as exc:
         log.exception("job %s stage %d failed unexpectedly", job_id, index)
-        ctx.store.fail(job_id, f"internal error in {stage_name(ctx, job_id, index)}: "
+        fail(f"internal error in {stage_name(ctx, job_id, index)}: {type(exc).__name__}: {exc}")
+
+
+def _sender(task: Task) -> SendTask:
+    def send(name: str, args: list[Any], queue: str) -> str:
+        return str(task.app.send_task(name, args=args, queue=queue, routing_key=queue).id)
+
+    return send
+
+
+@shared_task(bind=True, name=TASK_SEQUENCE)
+def sequence(self: Task, job_id: str) -> None:
+    """Write sequence job ``job_id``'s manifest once all its frames are over."""
+    ctx = _context(self)
+    try:
+        count_ended_frames(ctx.store.sessions, job_id, _sender(self))
+        export_sequence(ctx, job_id)
+    except _transient_errors() as exc:
+        if self.request.retries >= ctx.settings.task_max_retries:
+            ctx.store.fail(job_id, f"the sequence export gave up after {self.request.retries} "
+                           f"retries: {type(exc).__name__}: {exc}")
+            return
+        raise self.retry(exc=exc, countdown=_backoff_s(self.request.retries),
+                         max_retries=ctx.settings.task_max_retries) from exc
+    except Exception as exc:
+        log.exception("sequence %s: export failed unexpectedly", job_id)
+        ctx.store.fail(job_id, f"internal error in the sequence export: "
                        f"{type(exc).__name__}: {exc}")
 
 

@@ -36,6 +36,12 @@ def synth(
     frames: Annotated[int | None, typer.Option("--frames", help="Frames per camera (default 1, "
                                                "24 with --target).")] = None,
     floor: Annotated[bool, typer.Option("--floor", help="Render a floor plane too.")] = False,
+    motion: Annotated[str, typer.Option(
+        "--motion", help="The subject over the frames: static (noise drawn anew each frame), "
+        "rigid (turning and swaying) or articulated (bowing at the waist); truth_poses.json "
+        "gives its pose and bend per frame.")] = "static",
+    fps: Annotated[float, typer.Option("--fps", help="Frame rate of the capture's "
+                                       "timestamps, frames per second.")] = 30.0,
     zip_: Annotated[bool, typer.Option("--zip", help="Also pack the capture as "
                                        "OUT.zip.")] = False,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace OUT if it "
@@ -43,6 +49,10 @@ def synth(
 ) -> None:
     """Writes a synthetic capture to OUT, and beside it in OUT the ground-truth mesh
     (ground_truth.ply, world frame) and the true camera poses (true_rig.json, rig.json form).
+    With --motion rigid or articulated, truth_poses.json holds the subject's pose in each frame
+    and its bend (frame f's truth is ground_truth.ply bent by bow_rad[f] about the horizontal
+    x axis at joint_y_m, faded in over joint_blend_m, then moved by world_from_subject[f];
+    `pipeline.synth.motion.SequenceTruth.mesh`).
     """
     import json
     import shutil
@@ -53,10 +63,13 @@ def synth(
     from app.cli.paths import output_folder
     from pipeline.io.capture_io import write_capture, zip_capture
     from pipeline.io.mesh_io import read_mesh, write_ply
-    from pipeline.synth.scene import SynthConfig, sample_mesh, synthesize_stream, true_cameras
+    from pipeline.synth.motion import MOTIONS, MotionConfig, synthesize_sequence
+    from pipeline.synth.scene import SynthConfig, sample_mesh, true_cameras
 
     if (mesh is None) == (target is None):
         raise ValueError("--mesh / --target: give exactly one of them")
+    if motion not in MOTIONS:
+        raise ValueError(f"--motion: must be one of {', '.join(MOTIONS)}, got {motion!r}")
     frames = frames if frames is not None else (24 if target is not None else 1)
     config = SynthConfig(model_height_m=height_m, max_radius_m=max_radius_m or None,
                          up_axis=up_axis, seed=seed, camera_count=cameras,
@@ -80,8 +93,12 @@ def synth(
         def advance(fraction: float) -> None:
             bar.update(round(fraction * cameras) - bar.n)
 
-        meta, views, ground_truth = synthesize_stream(source, config, progress=advance)
+        sequence = synthesize_sequence(source, config, MotionConfig(kind=motion,
+                                                                   frame_rate_hz=fps),
+                                       progress=advance)
+        meta, views, truth = sequence
         write_capture(out, meta, views)
+    ground_truth = truth.subject
     if zip_:  # before the ground truth, so the zip holds the capture alone
         zip_path = out.with_name(out.name + ".zip")
         zip_capture(out, zip_path)
@@ -90,9 +107,14 @@ def synth(
     poses = {cam.id: np.asarray(cam.world_from_depth).tolist()
              for cam in true_cameras(ground_truth, config)}
     (out / "true_rig.json").write_text(json.dumps({"world_from_depth": poses}, indent=1))
+    if motion != "static":
+        bows = None if truth.bow_rad is None else truth.bow_rad.round(9).tolist()
+        (out / "truth_poses.json").write_text(json.dumps({
+            "fps": fps, "world_from_subject": truth.world_from_subject.round(9).tolist(),
+            "bow_rad": bows, "joint_y_m": truth.joint_y_m, "joint_blend_m": truth.joint_blend_m}))
     height = float(ground_truth.vertices_m[:, 1].max())
-    typer.echo(f"wrote {out} ({cameras} cameras, {frames} frame(s), subject {height:.2f} m "
-               f"tall), ground_truth.ply and true_rig.json")
+    typer.echo(f"wrote {out} ({cameras} cameras, {frames} frame(s) at {fps:g} fps, {motion} "
+               f"subject {height:.2f} m tall), ground_truth.ply and true_rig.json")
 
 
 def _synth_target(out: Path, kind: str, frames: int, cameras: int, seed: int, noise: bool,

@@ -65,6 +65,16 @@ class Gateway:
                                        retry=True, retry_policy=_PUBLISH_RETRY)
         return str(result.id)
 
+    def send_group(self, name: str, args_list: list[list[Any]], queue: str) -> list[str]:
+        """Queue one task per argument list at once (a Celery group; no result backend is
+        needed, as the job store tracks completion); returns their ids in order."""
+        from celery import group
+
+        signatures = [self.celery.signature(name, args=args, queue=queue, routing_key=queue)
+                      for args in args_list]
+        result = group(signatures).apply_async(retry=True, retry_policy=_PUBLISH_RETRY)
+        return [str(child.id) for child in result.results]
+
     def revoke(self, task_id: str) -> None:
         """Drop a queued task (best effort: workers also check the job state)."""
         if self.settings.embedded:

@@ -1,4 +1,5 @@
-"""Share links: a signed token that lets anyone holding it read one asset until it expires.
+"""Share links: a signed token that lets anyone holding it read one asset until it expires
+(a sequence's asset: the sequence and the assets of its frames, which its manifest links).
 
 The token is ``EXPIRES.SIGNATURE``: the expiry as a Unix time and an HMAC-SHA256 over the asset
 id and that expiry, keyed by a random secret that every gateway reads from the job store (so a
@@ -52,3 +53,9 @@ def token_grants(secret: bytes, asset_id: str, token: str, now_unix_s: float) ->
     expires_unix_s = int(expires_text)
     expected = _signature(secret, asset_id, expires_unix_s)
     return hmac.compare_digest(signature, expected) and now_unix_s < expires_unix_s
+
+
+def token_grants_any(secret: bytes, asset_ids: list[str], token: str, now_unix_s: float) -> bool:
+    """Whether ``token`` is a live share link of one of these assets (an asset, then the
+    sequence it is a frame of)."""
+    return any(token_grants(secret, asset_id, token, now_unix_s) for asset_id in asset_ids)

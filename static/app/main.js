@@ -237,14 +237,16 @@ async function rawMeshUrl(id, report) {
 
 function jobItem(job) {
   const item = document.createElement('li');
-  // A job's mesh opens in the viewer; a job that only calibrated links to its rig file.
-  const href = job.asset_id ? `/?asset=${encodeURIComponent(job.asset_id)}` : job.links?.rig ?? null;
+  // A job's mesh opens in the viewer, a sequence plays; a job that only calibrated links to its
+  // rig file.
+  const href = job.links?.viewer ?? (job.asset_id ? `/?asset=${encodeURIComponent(job.asset_id)}` : job.links?.rig ?? null);
   const name = href ? document.createElement('a') : document.createElement('span');
   if (href) name.href = href;
   name.textContent = String(job.id).slice(0, 12);
   const state = document.createElement('span');
   state.className = `job-state job-${job.state}`;
-  state.textContent = job.state === 'running' && job.stage ? `${job.stage} ${Math.round((job.progress || 0) * 100)} %` : job.state;
+  const frames = job.frames_total ? ` (${job.frames_done}/${job.frames_total} frames${job.frames_failed ? `, ${job.frames_failed} failed` : ''})` : '';
+  state.textContent = (job.state === 'running' && job.stage ? `${job.stage} ${Math.round((job.progress || 0) * 100)} %` : job.state) + frames;
   item.append(name, ' ', state);
   return item;
 }

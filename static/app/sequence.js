@@ -12,9 +12,14 @@ export function parseManifest(doc, manifestUrl) {
   if (!doc.bounds || !triple(doc.bounds.min) || !triple(doc.bounds.max)) fail('bounds needs min and max, three numbers each');
   if (!Array.isArray(doc.frames) || doc.frames.length === 0) fail('frames must be a non-empty list');
   const base = new URL(manifestUrl, location.href);
+  // A manifest opened through a share link (?share=TOKEN) passes the token on to its frames on
+  // the same server: the gateway's token of a sequence also opens the assets of its frames.
+  const share = base.searchParams.get('share');
   const urls = doc.frames.map((frame, i) => {
     if (!frame || typeof frame.url !== 'string' || !frame.url) fail(`frames[${i}].url is missing`);
-    return new URL(frame.url, base).href;
+    const url = new URL(frame.url, base);
+    if (share && url.origin === base.origin && !url.searchParams.has('share')) url.searchParams.set('share', share);
+    return url.href;
   });
   const bounds = new THREE.Box3(new THREE.Vector3(...doc.bounds.min), new THREE.Vector3(...doc.bounds.max));
   return { fps: doc.fps, bounds, urls };

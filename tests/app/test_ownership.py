@@ -214,3 +214,24 @@ def test_a_share_link_opens_one_asset_for_anyone_until_it_expires(
     too_long = service.client.post(f"/api/v1/assets/{a.asset_id}/share", headers=a_auth,
                                    json={"expires_in_s": 90 * 24 * 3600})
     assert too_long.status_code == 422
+
+
+def test_another_key_reaches_no_sequence_nor_its_frames(
+        service: Service, two: tuple[dict[str, str], Owned, dict[str, str], Owned]) -> None:
+    a_auth, a, b_auth, _ = two
+    sequence = service.client.post("/api/v1/jobs", headers=a_auth,
+                                   json={"capture_id": a.capture_id, "frames": "all"})
+    assert sequence.status_code == 202, sequence.text
+    sequence_id = sequence.json()["id"]
+    frames = service.client.get(f"/api/v1/jobs?parent_id={sequence_id}", headers=a_auth).json()
+    assert frames["total"] == 1
+    frame_id = frames["items"][0]["id"]
+    for auth, total in ((b_auth, 0), (a_auth, 1)):  # frames inherit their sequence's owner
+        listed = service.client.get(f"/api/v1/jobs?parent_id={sequence_id}", headers=auth)
+        assert listed.status_code == 200 and listed.json()["total"] == total
+    for url in (f"/api/v1/jobs/{sequence_id}", f"/api/v1/jobs/{frame_id}"):
+        assert service.client.get(url, headers=b_auth).status_code == 404, url
+        assert service.client.delete(url, headers=b_auth).status_code == 404, url
+        assert service.client.get(url, headers=a_auth).json()["state"] == "queued"
+    cancelled = service.client.delete(f"/api/v1/jobs/{sequence_id}", headers=a_auth)
+    assert cancelled.status_code == 200

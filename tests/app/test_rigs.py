@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from app.schemas import check_rigid
+from app.core.poses import check_rigid
 from tests.app.conftest import Service
 from tests.integration.services import ANONYMOUS
 

@@ -299,6 +299,30 @@ def make_calibration_zip(folder: Path, cameras: int = 4, width: int = 160, heigh
     return zip_path
 
 
+def sequence_capture_zip(folder: Path, frames: int = 4, bad_frame: int | None = None,
+                         fps: float = 15.0) -> Path:
+    """A 4-camera capture of the subject turning, small images; ``bad_frame`` has no depth
+    in any camera (all zeros)."""
+    from dataclasses import replace
+
+    import numpy as np
+
+    from pipeline.io.capture_io import write_capture, zip_capture
+    from pipeline.synth.motion import MotionConfig, synthesize_sequence
+    from pipeline.synth.rig import RigConfig
+    from pipeline.synth.scene import SynthConfig, sample_mesh
+
+    config = SynthConfig(camera_count=4, frame_count=frames, rig=RigConfig(width=160, height=144))
+    meta, views, _ = synthesize_sequence(sample_mesh(), config,
+                                         MotionConfig(kind="rigid", frame_rate_hz=fps))
+    kept = [replace(v, depth_m=np.zeros_like(v.depth_m)) if v.frame_index == bad_frame else v
+            for v in views]
+    with tempfile.TemporaryDirectory(dir=folder) as tmp:
+        write_capture(Path(tmp) / "capture", meta, kept)
+        zip_capture(Path(tmp) / "capture", folder / f"sequence-{frames}-{bad_frame}.zip")
+    return folder / f"sequence-{frames}-{bad_frame}.zip"
+
+
 def wait_job(client: httpx.Client, job_id: str, states: set[str], timeout_s: float,
              headers: dict[str, str] | None = None) -> dict[str, Any]:
     def check() -> dict[str, Any] | None:

@@ -100,7 +100,7 @@ def test_failure_is_recorded_once(store: JobStore) -> None:
 def test_capture_validation_results(store: JobStore) -> None:
     capture_id = "c" * 32
     assert store.capture(capture_id) == ("c" * 64, "k")
-    store.capture_validated(capture_id, 8, 2)
+    store.capture_validated(capture_id, 8, (0, 1))
     store.capture_rejected(capture_id, "late verdict")  # a ready capture stays ready
     with store.sessions() as session:
         row = session.get(Capture, capture_id)

@@ -1,7 +1,9 @@
-"""GET /assets/{id} and its files (mesh.glb, mesh.ply, report.json); POST /assets/{id}/share.
+"""GET /assets/{id} and its files (mesh.glb, mesh.ply, report.json; a sequence's
+sequence.json); POST /assets/{id}/share.
 
 An asset is read with an API key of its owner, or with a share token (``?share=TOKEN``) that
-its owner made: a link that works for anyone, for this asset only, until it expires.
+its owner made: a link that works for anyone, for this asset only (a sequence's: also its
+frames' assets), until it expires.
 
 Files never change once written, so they carry strong ETags (their SHA-256), immutable cache
 headers, and answer ``Range`` requests (one range) and ``If-None-Match``.
@@ -14,6 +16,7 @@ import time
 from collections.abc import Iterator
 from datetime import UTC, datetime
 from typing import Annotated, Any
+from urllib.parse import quote
 
 from fastapi import APIRouter, Path, Query, Request
 from fastapi.responses import Response, StreamingResponse
@@ -22,7 +25,7 @@ from sqlalchemy.orm import Session
 
 from app.api.deps import BearerDep, CallerDep, GatewayDep, SessionDep, StorageDep, authenticate
 from app.core.problems import BODY, READ, WRITE, ProblemError, problem_responses
-from app.core.sharing import share_token, token_grants
+from app.core.sharing import share_token, token_grants_any
 from app.schemas import (
     API_PREFIX,
     ID_PATTERN,
@@ -69,12 +72,21 @@ def _owned_asset(session: Session, asset_id: str) -> tuple[Asset, str | None] | 
     return None if found is None else (found[0], found[1])
 
 
+def _share_scopes(session: Session, asset_id: str) -> list[str]:
+    """The assets whose share link opens this one: itself, and the sequence's asset when it
+    is a frame's."""
+    sequence_asset = session.scalar(
+        select(Job.asset_id).where(Job.id == select(Job.parent_id).join(
+            Asset, Asset.job_id == Job.id).where(Asset.id == asset_id).scalar_subquery()))
+    return [asset_id] if sequence_asset is None else [asset_id, sequence_asset]
+
+
 def _readable_asset(session: Session, gateway: Any, asset_id: str, credentials: Any,
                     share: str | None) -> tuple[Asset, bool]:
     """The asset, when the request's share token or key may read it; and whether it was the
     token (a viewer that holds a key of its own also opens links shared with it)."""
-    shared = share is not None and token_grants(gateway.share_secret, asset_id, share,
-                                                time.time())
+    shared = share is not None and token_grants_any(
+        gateway.share_secret, _share_scopes(session, asset_id), share, time.time())
     if share is not None and not shared and credentials is None:
         raise ProblemError(401, "The share link is not valid for this asset, or it has "
                            "expired; ask its owner for a new one.", kind="unauthorized",
@@ -109,9 +121,14 @@ def share_asset(asset_id: AssetId, body: AssetShareCreate, session: SessionDep,
     token = share_token(gateway.share_secret, asset_id, expires_unix_s)
     files = {name: f"{API_PREFIX}/assets/{asset_id}/{name}?share={token}"
              for name in found[0].files or {}}
+    if "sequence.json" in files:  # the viewer plays it; the token opens its frames too
+        manifest = quote(f"{API_PREFIX}/assets/{asset_id}/sequence.json?share={token}", safe="/")
+        viewer_url = f"/?sequence={manifest}"
+    else:
+        viewer_url = f"/?asset={asset_id}&share={token}"
     return AssetSharePublic(asset_id=asset_id, share=token,
                             expires_at=datetime.fromtimestamp(expires_unix_s, UTC),
-                            viewer_url=f"/?asset={asset_id}&share={token}", files=files)
+                            viewer_url=viewer_url, files=files)
 
 
 def parse_range(header: str, size: int) -> tuple[int, int] | None:
@@ -162,7 +179,9 @@ def _etag_matches(header: str | None, etag: str) -> bool:
 def get_asset_file(asset_id: AssetId, name: AssetFileName, request: Request,
                    session: SessionDep, storage: StorageDep, gateway: GatewayDep,
                    credentials: BearerDep, share: ShareToken = None) -> Response:
-    """mesh.glb (Draco-compressed glTF binary), mesh.ply or report.json."""
+    """mesh.glb (Draco-compressed glTF binary), mesh.ply or report.json; a sequence job's
+    asset holds sequence.json (the viewer's manifest; its frames' GLBs are linked relative to
+    it, ``../{frame asset id}/mesh.glb``)."""
     row, _ = _readable_asset(session, gateway, asset_id, credentials, share)
     entry = (row.files or {}).get(name)
     if entry is None:

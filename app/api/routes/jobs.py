@@ -1,15 +1,18 @@
-"""POST /jobs, GET /jobs, GET /jobs/{id}, DELETE /jobs/{id}, GET /jobs/{id}/events."""
+"""POST /jobs, GET /jobs, GET /jobs/{id}, DELETE /jobs/{id}, GET /jobs/{id}/events.
+
+A job with ``frames`` is a sequence: one frame job per capture frame, run in parallel
+(`workers.sequence`); cancelling the sequence cancels its frames."""
 
 from __future__ import annotations
 
 import asyncio
 import time
 from collections.abc import AsyncIterator
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Path, Query, Request, Response
 from fastapi.responses import StreamingResponse
-from sqlalchemy import bindparam, select
+from sqlalchemy import bindparam, delete, select, update
 from sqlalchemy.orm import Session
 from starlette.concurrency import run_in_threadpool
 
@@ -18,9 +21,18 @@ from app.api.pagination import PageLimit, PageOffset, fetch_page
 from app.core.context import Gateway
 from app.core.problems import BODY, READ, WRITE, ProblemError, located, problem_responses
 from app.core.security import Caller, can_use_capture
-from app.schemas import API_PREFIX, ID_PATTERN, JobCreate, JobPage, JobPublic, JobState
+from app.schemas import (
+    API_PREFIX,
+    ID_PATTERN,
+    FrameRange,
+    JobCreate,
+    JobPage,
+    JobPublic,
+    JobState,
+)
 from workers.celery_app import QUEUE_CPU, TASK_STAGE
 from workers.models import TERMINAL_STATES, Capture, Job, Rig, new_id, utcnow
+from workers.sequence import SEQUENCE_STAGES, frame_over
 
 router = APIRouter(prefix="/jobs", tags=["jobs"])
 
@@ -71,6 +83,8 @@ def _options(session: Session, caller: Caller, body: JobCreate) -> dict[str, Any
 
 
 def _create(gateway: Gateway, caller: Caller, body: JobCreate) -> Job:
+    if body.frames is not None:
+        return _create_sequence(gateway, caller, body)
     with gateway.sessions() as session:
         if body.calibration_capture_id is not None:
             _ready_capture(session, caller, body.calibration_capture_id)
@@ -97,10 +111,67 @@ def _create(gateway: Gateway, caller: Caller, body: JobCreate) -> Job:
 
 def _forget_job(gateway: Gateway, job_id: str) -> None:
     with gateway.sessions() as session:
+        session.execute(delete(Job).where(Job.parent_id == job_id))
         row = session.get(Job, job_id)
         if row is not None:
             session.delete(row)
-            session.commit()
+        session.commit()
+
+
+def sequence_frames(capture: Capture, frames: Literal["all"] | FrameRange) -> list[int]:
+    """The capture's frame indices a sequence job reconstructs; a 422 naming a range that
+    reaches outside them."""
+    indices = sorted(capture.frame_indices or range(capture.frames or 0))
+    if not indices:
+        raise ProblemError(422, f"Capture {capture.id} lists no frames.",
+                           kind="validation-error")
+    if frames == "all":
+        return indices
+    missing = [i for i in (frames.first, frames.last) if i not in indices]
+    if missing:
+        raise ProblemError(422, f"frames: the range {frames.first}..{frames.last} lies outside "
+                           f"capture {capture.id}'s frames ({_span(indices)}); frame "
+                           f"{missing[0]} is not one of them.", kind="validation-error")
+    return [i for i in indices if frames.first <= i <= frames.last]
+
+
+def _span(indices: list[int]) -> str:
+    contiguous = indices == list(range(indices[0], indices[-1] + 1))
+    return f"{indices[0]}..{indices[-1]}" if contiguous else f"{len(indices)} frames, " \
+        f"{indices[0]} to {indices[-1]}"
+
+
+def _create_sequence(gateway: Gateway, caller: Caller, body: JobCreate) -> Job:
+    """A sequence job and one frame job per frame, then every frame's first stage queued at
+    once (a group; completion is counted in the job store, `workers.sequence`)."""
+    assert body.capture_id is not None and body.frames is not None
+    with gateway.sessions() as session:
+        capture = _ready_capture(session, caller, body.capture_id)
+        indices = sequence_frames(capture, body.frames)
+        options = _options(session, caller, body)
+        parent = Job(id=new_id(), capture_id=capture.id, owner=caller.owner, options=options,
+                     stages=list(SEQUENCE_STAGES), stage=SEQUENCE_STAGES[0], stage_timings={},
+                     frames_total=len(indices), frames_done=0, frames_failed=0)
+        frame_options = {k: v for k, v in options.items() if k != "frames"}
+        frames = [Job(id=new_id(), capture_id=capture.id, owner=caller.owner,
+                      options={**frame_options, "frame_index": i}, stages=[], stage_timings={},
+                      parent_id=parent.id, frame_index=i) for i in indices]
+        session.add_all([parent, *frames])
+        session.commit()
+        frame_ids = [f.id for f in frames]
+    try:
+        task_ids = gateway.send_group(TASK_STAGE, [[i, 0] for i in frame_ids], QUEUE_CPU)
+    except Exception:
+        _forget_job(gateway, parent.id)  # never queued: leave no job that would wait forever
+        raise
+    with gateway.sessions() as session:
+        for frame_id, task_id in zip(frame_ids, task_ids, strict=True):
+            session.execute(update(Job).where(Job.id == frame_id, Job.task_id.is_(None))
+                            .values(task_id=task_id))
+        session.commit()
+        row = session.get(Job, parent.id)
+        assert row is not None
+        return row
 
 
 @router.post("", status_code=202, response_model=JobPublic,
@@ -121,13 +192,19 @@ def create_job(body: JobCreate, response: Response, gateway: GatewayDep,
             responses=problem_responses(READ))
 def list_jobs(session: SessionDep, caller: CallerDep, gateway: GatewayDep, limit: PageLimit = 20,
               offset: PageOffset = 0, state: JobState | None = None,
-              capture_id: Annotated[str | None, Query(pattern=ID_PATTERN)] = None) -> JobPage:
+              capture_id: Annotated[str | None, Query(pattern=ID_PATTERN)] = None,
+              parent_id: Annotated[str | None, Query(
+                  pattern=ID_PATTERN, description="List the frame jobs of this sequence job "
+                  "(default: top-level jobs only).")] = None) -> JobPage:
     query = select(Job) if caller.admin else select(Job).where(Job.owner == caller.owner)
+    query = query.where(Job.parent_id.is_(None) if parent_id is None
+                        else Job.parent_id == parent_id)
     if state is not None:
         query = query.where(Job.state == state)
     if capture_id is not None:
         query = query.where(Job.capture_id == capture_id)
-    rows, total = fetch_page(session, query, (Job.created_at.desc(), Job.id), limit, offset)
+    order = (Job.frame_index, Job.id) if parent_id else (Job.created_at.desc(), Job.id)
+    rows, total = fetch_page(session, query, order, limit, offset)
     return JobPage(items=[JobPublic.of(r, gateway.queues.get) for r in rows], total=total,
                    limit=limit, offset=offset)
 
@@ -166,10 +243,23 @@ def cancel_job(job_id: JobId, gateway: GatewayDep, caller: CallerDep) -> JobPubl
         if row.state != "cancelled":
             now = utcnow()
             row.state, row.updated_at, row.finished_at = "cancelled", now, now
+            revoked = [row.task_id] if row.task_id else []
+            revoked += _cancel_frames(session, job_id, now)
             session.commit()
-            if row.task_id:
-                gateway.revoke(row.task_id)
+            for task_id in revoked:
+                gateway.revoke(task_id)
+            if row.parent_id:  # one frame of a sequence: the sequence counts it as failed
+                frame_over(gateway.sessions, job_id, gateway.send_task)
         return JobPublic.of(row)
+
+
+def _cancel_frames(session: Session, parent_id: str, now: Any) -> list[str]:
+    """Cancel a sequence's live frame jobs; their task ids (to revoke)."""
+    live = (Job.parent_id == parent_id, Job.state.in_(("queued", "running")))
+    task_ids = [t for t in session.scalars(select(Job.task_id).where(*live)) if t]
+    session.execute(update(Job).where(*live).values(state="cancelled", updated_at=now,
+                                                    finished_at=now, frame_counted=True))
+    return task_ids
 
 
 def _snapshot(gateway: Gateway, job_id: str, caller: Caller) -> JobPublic | None:

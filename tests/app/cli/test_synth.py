@@ -109,3 +109,24 @@ def test_overwrite_replaces_a_previous_capture(tmp_path: Path) -> None:
     assert not (out / "cam2").exists()
     with open_capture(out) as capture:
         assert capture.meta.camera_ids == ("cam0",)
+
+
+def test_synth_writes_a_moving_sequence_with_its_truth(tmp_path: Path) -> None:
+    out = tmp_path / "moving"
+    result = CliRunner().invoke(app, [
+        "synth", "--mesh", "sample", "--out", str(out), "--cameras", "2", "--frames", "3",
+        "--motion", "rigid", "--fps", "10"])
+    assert result.exit_code == 0, result.output
+    assert "3 frame(s) at 10 fps, rigid subject" in result.output
+    truth = json.loads((out / "truth_poses.json").read_text())
+    poses = np.array(truth["world_from_subject"])
+    assert truth["fps"] == 10 and poses.shape == (3, 4, 4)
+    np.testing.assert_allclose(poses[0], np.eye(4), atol=1e-12)
+    assert not np.allclose(poses[1], poses[2])
+    with open_capture(out) as capture:
+        assert [f.timestamp_us for f in capture.meta.frames] == [0, 100_000, 200_000]
+        first, last = capture.read_view("cam0", 0), capture.read_view("cam0", 2)
+        assert not np.array_equal(first.depth_m > 0, last.depth_m > 0)  # the subject moved
+    refused = CliRunner().invoke(app, ["synth", "--mesh", "sample", "--out",
+                                       str(tmp_path / "x"), "--motion", "dance"])
+    assert refused.exit_code != 0 and "--motion" in str(refused.output) + str(refused.exception)
