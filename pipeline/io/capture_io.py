@@ -11,6 +11,7 @@ import json
 import re
 import zipfile
 from collections.abc import Iterable
+from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 from types import TracebackType
@@ -29,6 +30,7 @@ from pipeline.io.capture_images import (
 )
 from pipeline.io.capture_json import meta_from_json, meta_to_json
 from pipeline.io.capture_source import ArchiveLimits, DirSource, Source, open_zip
+from pipeline.io.png16 import encode_png16
 
 _COLOR_SUFFIXES = (".jpg", ".jpeg", ".png")
 # Room for a million frames with timestamps; parsed, JSON takes about ten times its size.
@@ -176,22 +178,66 @@ def depth_to_units(depth_m: NDArray[np.floating], depth_scale: float) -> NDArray
     return np.clip(units, 0, np.iinfo(np.uint16).max).astype(np.uint16)
 
 
-def write_capture(out_dir: str | Path, meta: CaptureMeta, views: Iterable[View]) -> None:
-    """Writes capture.json and each view's depth (16-bit PNG) and colour (PNG)."""
+@dataclass(frozen=True)
+class StoredView:
+    """One camera's images at one frame as the capture stores them, for a source whose data
+    are in that form already (a recording's millimetres and JPEGs): written with no
+    conversion. A :class:`View` is converted to this on the way out."""
+
+    camera: CameraInfo
+    frame_index: int
+    depth_units: NDArray[np.uint16]
+    """(H, W) depth in the capture's units (value × depth_scale = metres), 0 = none."""
+    color_rgb: NDArray[np.uint8] | None = None
+    """(Hc, Wc, 3) RGB, written as PNG."""
+    color_jpeg: bytes | None = None
+    """A JPEG file's bytes, written as they are (instead of ``color_rgb``)."""
+
+    def __post_init__(self) -> None:
+        if self.color_rgb is not None and self.color_jpeg is not None:
+            raise ValueError(f"{self.camera.id} frame {self.frame_index}: colour given both "
+                             "as RGB and as a JPEG")
+
+
+def stored_view(view: View | StoredView, depth_scale: float) -> StoredView:
+    """The view as stored in a capture of ``depth_scale`` metres per depth unit."""
+    if isinstance(view, StoredView):
+        return view
+    return StoredView(view.camera, view.frame_index, depth_to_units(view.depth_m, depth_scale),
+                      color_rgb=view.color_rgb)
+
+
+def _write_view(out: Path, view: StoredView, folders: set[Path]) -> None:
+    """Writes the view's files; ``folders`` are those known to exist (one mkdir each)."""
+    cam_dir = out / view.camera.id
+    name = f"{view.frame_index:06d}"
+    _write_file(cam_dir / "depth" / f"{name}.png", encode_png16(view.depth_units), folders)
+    if view.color_jpeg is not None:
+        _write_file(cam_dir / "color" / f"{name}.jpg", view.color_jpeg, folders)
+    elif view.color_rgb is not None:
+        bgr = np.ascontiguousarray(view.color_rgb[:, :, ::-1])
+        color_png = _encode_png(bgr, f"{view.camera.id}/color/{name}.png")
+        _write_file(cam_dir / "color" / f"{name}.png", color_png, folders)
+
+
+def _write_file(path: Path, data: bytes, folders: set[Path]) -> None:
+    if path.parent not in folders:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        folders.add(path.parent)
+    path.write_bytes(data)
+
+
+def write_capture(out_dir: str | Path, meta: CaptureMeta,
+                  views: Iterable[View | StoredView]) -> None:
+    """Writes capture.json and each view's depth (16-bit PNG) and colour (PNG, or the JPEG a
+    StoredView carries). A View's depth in metres is rounded to ``meta.depth_scale``; a
+    StoredView's must be in those units already."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     (out / "capture.json").write_text(json.dumps(meta_to_json(meta), indent=1))
+    folders: set[Path] = set()
     for view in views:
-        cam_dir = out / view.camera.id
-        name = f"{view.frame_index:06d}.png"
-        (cam_dir / "depth").mkdir(parents=True, exist_ok=True)
-        depth = depth_to_units(view.depth_m, meta.depth_scale)
-        (cam_dir / "depth" / name).write_bytes(_encode_png(depth, f"{view.camera.id}/depth/{name}"))
-        if view.color_rgb is not None:
-            (cam_dir / "color").mkdir(parents=True, exist_ok=True)
-            bgr = np.ascontiguousarray(view.color_rgb[:, :, ::-1])
-            color_png = _encode_png(bgr, f"{view.camera.id}/color/{name}")
-            (cam_dir / "color" / name).write_bytes(color_png)
+        _write_view(out, stored_view(view, meta.depth_scale), folders)
 
 
 def zip_capture(capture_dir: str | Path, zip_path: str | Path) -> None:

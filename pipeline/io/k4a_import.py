@@ -18,6 +18,9 @@ from contextlib import closing
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
+import numpy as np
+from numpy.typing import NDArray
+
 from pipeline.capture import (
     CAMERA_ID_PATTERN,
     FORMAT_ID,
@@ -25,9 +28,8 @@ from pipeline.capture import (
     CaptureMeta,
     FrameInfo,
     Target,
-    View,
 )
-from pipeline.io.capture_io import write_capture
+from pipeline.io.capture_io import StoredView, write_capture
 from pipeline.io.capture_json import meta_from_json
 from pipeline.io.k4a_calibration import color_from_depth, color_intrinsics, depth_intrinsics
 from pipeline.io.k4a_mkv import (
@@ -40,7 +42,8 @@ from pipeline.io.k4a_mkv import (
 from pipeline.io.k4a_sync import FrameSet, match_frames
 
 DEPTH_SCALE_M = DEPTH_UNIT_M
-"""The capture's depth_scale: the device's millimetres, so depth is written as recorded."""
+"""The capture's depth_scale: the device's millimetres, so depth is written as recorded (the
+StoredViews carry the recorded values, which are in these units by this equality)."""
 
 
 @dataclass(frozen=True)
@@ -48,7 +51,8 @@ class ImportConfig:
     sync_window_us: int | None = None
     """Frames of one frame-set lie within this of its earliest; None: half a frame period."""
     writer_threads: int = 2
-    """Images encoded at once (the PNG encoder releases the GIL)."""
+    """Views written at once: deflate, CRC and file writes release the GIL, so two threads keep
+    two cores busy while one of them reads the recordings."""
     target: Target | None = None
     """The calibration target the colour images show, for a calibration recording."""
 
@@ -204,20 +208,24 @@ def iter_frame_sets(recordings: Recordings) -> Iterator[FrameSet[CameraFrame]]:
             stream.close()
 
 
-def _view(out: Path, camera: CameraInfo, index: int, frame: CameraFrame) -> View:
-    """The frame as a view for the capture writer; an MJPG image is written as it was
-    recorded (no decode and re-encode: it is a JPEG file already)."""
-    color_rgb = None
+def _depth_units(frame: CameraFrame) -> NDArray[np.uint16]:
+    """(H, W) the recorded millimetres in their recorded byte order (big-endian, as PNG
+    stores them, so the PNG writer copies them without a swap)."""
+    width, height = frame.size_px
+    return np.frombuffer(frame.depth_be, ">u2").reshape(height, width)
+
+
+def _view(camera: CameraInfo, index: int, frame: CameraFrame) -> StoredView:
+    """The frame as the capture stores it: depth in the recorded millimetres (the capture's
+    units, DEPTH_SCALE_M), an MJPG image as the recorded JPEG (no decode and re-encode)."""
     if frame.color is not None and frame.color.format == "MJPG":
-        folder = out / camera.id / "color"
-        folder.mkdir(parents=True, exist_ok=True)
-        (folder / f"{index:06d}.jpg").write_bytes(frame.color.payload)
-    elif frame.color is not None:
-        color_rgb = frame.color.rgb()
-    return View(camera=camera, frame_index=index, depth_m=frame.depth_m(), color_rgb=color_rgb)
+        return StoredView(camera, index, _depth_units(frame), color_jpeg=frame.color.payload)
+    color_rgb = frame.color.rgb() if frame.color is not None else None
+    return StoredView(camera, index, _depth_units(frame), color_rgb=color_rgb)
 
 
-def _write_views(out: Path, meta: CaptureMeta, views: Iterator[View], threads: int) -> None:
+def _write_views(out: Path, meta: CaptureMeta, views: Iterator[StoredView],
+                 threads: int) -> None:
     """write_capture with ``threads`` calls sharing one stream of views: each call writes the
     same capture.json and the views it draws, so together they write what one call would,
     encoding images side by side. The views are drawn under a lock (the stream is one
@@ -227,7 +235,7 @@ def _write_views(out: Path, meta: CaptureMeta, views: Iterator[View], threads: i
         return
     lock, stop = threading.Lock(), threading.Event()
 
-    def share() -> Iterator[View]:
+    def share() -> Iterator[StoredView]:
         while not stop.is_set():
             with lock:
                 view = next(views, None)
@@ -259,7 +267,7 @@ def import_recordings(recordings: Recordings, out_dir: str | Path,
     dropped = dict.fromkeys(ids, 0)
     counts = {"dropped": 0, "outside": 0, "missing_color": 0}
 
-    def views() -> Generator[View, None, None]:
+    def views() -> Generator[StoredView, None, None]:
         for frame_set in iter_frame_sets(recordings):
             if progress is not None and last_us > first_us:
                 progress(min(max((frame_set.timestamp_us - first_us) / (last_us - first_us),
@@ -275,7 +283,7 @@ def import_recordings(recordings: Recordings, out_dir: str | Path,
                                            frame_set.frames, strict=True):
                 assert frame is not None
                 counts["missing_color"] += info.color_format is not None and frame.color is None
-                yield _view(out, camera, index, frame)
+                yield _view(camera, index, frame)
 
     meta = CaptureMeta(depth_scale=DEPTH_SCALE_M, cameras=recordings.cameras, frames=(),
                        target=recordings.target)
