@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
 from app.cli import app
-from pipeline.enhance.config import REMOVED_SETTINGS
-from pipeline.enhance.self_check import SelfCheck
+
+if TYPE_CHECKING:
+    from pipeline.enhance.self_check import SelfCheck
 
 _GONE_WITH_SETTING = {
     "--iterations": "iterations",
@@ -21,8 +22,8 @@ _GONE_WITH_SETTING = {
     "--ensemble": "ensemble",
 }
 """Options that set an enhancement setting jobs may no longer set either: refused with the
-job setting's own line (`REMOVED_SETTINGS`)."""
-REMOVED_OPTIONS = {
+job setting's own line (`pipeline.enhance.config.REMOVED_SETTINGS`)."""
+_REPLACED = {
     "--views": "removed; enhance-mesh renders the six axis views the networks were trained on "
                "(a job's enhancement.views still sets it)",
     "--resolution": "removed; enhance-mesh renders views of the side the networks were trained "
@@ -35,19 +36,30 @@ REMOVED_OPTIONS = {
     "--normal-filter": "removed; the bilateral normal filter ends every method as tuned",
     "--remesh-ahead/--remesh-after": "removed; the speculative remesh runs where the device is "
                                      "a GPU, the remesh after the update on the CPU",
-} | {option: f"removed; {REMOVED_SETTINGS[setting]}"
-     for option, setting in _GONE_WITH_SETTING.items()}
-"""Options `enhance-mesh` refuses, each with what takes its place: given, they fail with that
-line rather than be silently accepted."""
+}
+REMOVED_OPTIONS = (*_REPLACED, *_GONE_WITH_SETTING)
+"""Options `enhance-mesh` refuses, each with what takes its place (`removed_reason`): given,
+they fail with that line rather than be silently accepted."""
+
+
+def removed_reason(declaration: str) -> str:
+    """What took the place of a removed option."""
+    if declaration in _GONE_WITH_SETTING:
+        # Read only when refusing: the enhancement's modules load in about half a second,
+        # which every other command would pay at start.
+        from pipeline.enhance.config import REMOVED_SETTINGS
+
+        return f"removed; {REMOVED_SETTINGS[_GONE_WITH_SETTING[declaration]]}"
+    return _REPLACED[declaration]
 
 
 def _refused(declaration: str) -> Any:
-    """A hidden option that fails naming what replaced it (`REMOVED_OPTIONS`) when given."""
+    """A hidden option that fails naming what replaced it (`removed_reason`) when given."""
     names = declaration.split("/")
 
     def refuse(value: Any) -> None:
         if value is not None:
-            raise ValueError(f"{declaration}: {REMOVED_OPTIONS[declaration]}")
+            raise ValueError(f"{declaration}: {removed_reason(declaration)}")
 
     return typer.Option(*names if len(names) == 1 else [declaration], hidden=True,
                         callback=refuse)

@@ -69,14 +69,14 @@ def test_enhance_mesh_defaults_are_the_pipelines():
     ["--remesh-ahead"], ["--remesh-after"], ["--ensemble", "4"]])
 def test_a_removed_option_fails_naming_what_replaced_it(tmp_path, given: list[str]):
     from app.cli import app
-    from app.cli.enhance import REMOVED_OPTIONS
+    from app.cli.enhance import REMOVED_OPTIONS, removed_reason
 
     result = CliRunner().invoke(app, ["enhance-mesh", str(tmp_path / "missing.ply"), "--out",
                                       str(tmp_path / "o.ply"), *given])
     assert result.exit_code != 0 and isinstance(result.exception, ValueError)
     name = given[0].split("=")[0]
     declaration = next(d for d in REMOVED_OPTIONS if name in d.split("/"))
-    assert str(result.exception) == f"{declaration}: {REMOVED_OPTIONS[declaration]}"
+    assert str(result.exception) == f"{declaration}: {removed_reason(declaration)}"
     assert not (tmp_path / "o.ply").exists()
 
 
