@@ -8,7 +8,8 @@ every stage reads only the keys it documents. The mesh-producing stages all writ
 Stages (in order):
   filter    depth_m_<k> (H, W) float32: range limits, flying pixels, bilateral filter
   align     depth_m_<k> corrected by per-camera range offsets; depth_offset_m (C,);
-            world_from_depth (C, 4, 4) touched-up poses (later stages use them)
+            world_from_depth (C, 4, 4) touched-up poses (later stages use them); only
+            corrections within the sensor's error budget that held-out overlaps show
   register  points_world (N, 3), normals_world (N, 3), camera_index (N,), point_colors;
             cropped to the rig's inner cylinder, without the floor
   refine    the same keys, only the points of each voxel's chosen camera
@@ -32,7 +33,12 @@ from numpy.typing import NDArray
 
 from pipeline.capture import CameraInfo, CaptureMeta
 from pipeline.geometry.mesh import TriangleMesh, vertex_normals
-from pipeline.reconstruct.align import DepthView, apply_offsets, estimate_corrections
+from pipeline.reconstruct.align import (
+    DepthView,
+    align_report,
+    apply_offsets,
+    estimate_corrections,
+)
 from pipeline.reconstruct.colorize import ColorView, colorize_mesh
 from pipeline.reconstruct.crop import crop_mask
 from pipeline.reconstruct.depth_filter import filter_depth
@@ -154,18 +160,9 @@ def _stage_align(capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],
     for k, (depth, cam) in enumerate(zip(depths, cameras, strict=True)):
         out[f"depth_m_{k}"] = apply_offsets(depth, ray_image(cam.depth_intrinsics),
                                             found.offsets_m[k])
-    moved = {}
-    for cam, pose in zip(cameras, found.world_from_depth, strict=True):
-        before = np.asarray(cam.world_from_depth)
-        turn = (np.trace(before[:3, :3].T @ pose[:3, :3]) - 1) / 2
-        moved[cam.id] = {"rotation_deg": round(float(np.degrees(np.arccos(np.clip(turn, -1, 1)))),
-                                               4),
-                         "translation_mm": round(float(np.linalg.norm(
-                             pose[:3, 3] - before[:3, 3])) * 1e3, 3)}
-    return out | stats_artifact("align", {
-        "depth_offset_mm": {c.id: round(float(o) * 1e3, 3)
-                            for c, o in zip(cameras, found.offsets_m, strict=True)},
-        "pose_change": moved})
+    poses = np.array([np.asarray(cam.world_from_depth) for cam in cameras])
+    return out | stats_artifact("align", align_report([c.id for c in cameras], poses, found,
+                                                      config.align))
 
 
 def _stage_register(capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],

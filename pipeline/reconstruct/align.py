@@ -1,35 +1,58 @@
-"""Alignment of the cameras on their overlaps: per-camera range offsets and pose touch-ups.
+"""Alignment of the cameras on their overlaps: per-camera range offsets and pose touch-ups,
+bounded by the sensor's error budget and by what the overlaps show.
 
 Time-of-flight cameras measure range with a small constant offset per unit (a few mm for
 the Azure Kinect), which no extrinsic calibration removes, and a calibrated rig keeps pose
 residuals of a fraction of a degree and a few millimetres. Both leave the cameras' surfaces
 apart where they overlap, and whichever camera a region is taken from shows its own error.
+A robust least-squares solve over the overlaps (`align_solve`) finds a range offset and a
+small pose correction per camera; matches are then redrawn and the solve repeated, as in
+multi-view ICP.
 
-Where camera j's point p_j falls on camera i's surface (point p_i, normal n), a correction
-D_k(p) = w_k x (p - c_k) + t_k + beta_k r_k(p) of each camera k (small rotation w about its
-centre c, translation t, range change beta along the unit ray r) must close the gap s:
+A correction is a claim about the sensor, so it is kept only when it is plausible and shown:
 
-    n . (D_j(p_j) - D_i(p_i)) = -s
+* **Budget.** A correction may move what its camera sees by no more than the sensor's
+  systematic error at that distance (Azure Kinect: 11 mm + 0.1 % of the distance). Beyond
+  it, the disagreement is not the sensor's and the solve would bend the scene to fit noise
+  or a poor calibration: the correction is refused with a warning and the camera kept as
+  captured.
+* **Evidence.** Solved from one half of the overlaps (alternate 32-pixel image blocks), most
+  of a camera's correction must show in the other half's gaps (and the other way round). A
+  solve bends to the noise and mismatches of the samples it is given; a true offset or pose
+  error shows in the held-out ones as well. (An error smooth across the whole image shows
+  in both halves whatever its cause; the budget bounds those.)
 
-Every overlap sample is one linear equation in the 7 unknowns of two cameras. A robust
-(Huber-weighted) least squares solve with weak zero-mean priors (which also fix the free
-rigid motion of the whole rig) gives the corrections; matches are then redrawn with the
-corrected cameras and the solve repeated, as in multi-view ICP.
+Refusals are decided one camera at a time, the worst first, and the rest solved again: a
+camera beyond the budget leaves the solve, one whose correction is not shown stays in as
+captured.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Any
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from pipeline.capture import Intrinsics
-from pipeline.reconstruct.registration import camera_points_image, normal_image, project, ray_image
+from pipeline.reconstruct.align_solve import (
+    Matches,
+    SampledCamera,
+    apply_correction,
+    pair_matches,
+    sample_camera,
+    shifts_m,
+    solve,
+)
 
 FloatArray = NDArray[np.float64]
-_UNKNOWNS = 7  # rotation (3), translation (3), range (1) per camera
+
+APPLIED = "applied"
+BEYOND_BUDGET = "refused: beyond the sensor's error budget"
+NOT_SUPPORTED = "not applied: the overlaps do not support it"
+NO_OVERLAP = "not applied: no overlap with a camera left in the solve"
+OFF = "off"
 
 
 @dataclass(frozen=True)
@@ -68,6 +91,17 @@ class AlignConfig:
     """Reweighted least-squares iterations per round."""
     min_matches: int = 50
     """A camera pair with fewer matches than this contributes nothing."""
+    systematic_error_mm: float = 11.0
+    """The sensor's systematic depth error at zero distance, mm (Azure Kinect: under 11 mm)."""
+    distance_error_fraction: float = 0.001
+    """...plus this share of the distance (Azure Kinect: 0.1 %). A correction that moves any
+    point its camera sees by more than this budget at that point's distance is refused."""
+    min_confirmation: float = 0.5
+    """A camera's correction is applied only when, solved from one half of the overlaps
+    (alternate image blocks), at least this share of it shows in the other half's gaps
+    (each half in turn, pooled; `heldout_confirmation`)."""
+    heldout_block_px: int = 32
+    """Side of the image blocks that alternate between the two halves, pixels."""
 
     def __post_init__(self) -> None:
         if self.sample_step_px < 1 or self.rounds < 1 or self.iterations < 1:
@@ -75,6 +109,11 @@ class AlignConfig:
         if not (self.gate_m > 0 and self.huber_m > 0 and self.offset_prior_m > 0
                 and self.rotation_prior_deg > 0 and self.translation_prior_m > 0):
             raise ValueError("align: gate_m, huber_m and the priors must be > 0")
+        if not (self.systematic_error_mm >= 0 and self.distance_error_fraction >= 0
+                and self.systematic_error_mm + self.distance_error_fraction > 0):
+            raise ValueError("align: the sensor's error budget must be >= 0 and not zero")
+        if self.heldout_block_px < 1:
+            raise ValueError("align: heldout_block_px must be >= 1")
 
 
 @dataclass(frozen=True)
@@ -89,173 +128,224 @@ class DepthView:
 
 
 @dataclass(frozen=True)
+class CameraCorrection:
+    """What the alignment decided for one camera."""
+
+    status: str
+    """APPLIED, BEYOND_BUDGET, NOT_SUPPORTED, NO_OVERLAP or OFF."""
+    matches: int = 0
+    """Overlap samples of the camera (with every other camera, both ways)."""
+    max_shift_m: float = 0.0
+    """Largest move of a point the camera sees under the correction found, metres (also
+    for a correction that was not applied)."""
+    budget_share: float = 0.0
+    """The largest ratio of a point's move to the sensor's budget at its distance (> 1:
+    beyond the budget)."""
+    confirmation: float | None = None
+    """Share of the correction the held-out overlaps show (None: not measured)."""
+    proposed: FloatArray = field(default_factory=lambda: np.zeros(7))
+    """(7,) the correction found: rotation vector (rad), translation (m), range change (m)."""
+
+
+@dataclass(frozen=True)
 class Corrections:
-    """What the alignment found."""
+    """What the alignment found and kept."""
 
     offsets_m: FloatArray
     """(C,) range offset of each camera, metres: measured range = true range + offset."""
     world_from_depth: FloatArray
     """(C, 4, 4) corrected camera poses."""
+    cameras: tuple[CameraCorrection, ...] = ()
+    """Per camera, what was decided and why (empty when nothing was estimated)."""
 
 
-@dataclass(frozen=True)
-class _Camera:
-    """A camera's sampled pixels in its own frame (computed once)."""
-
-    points: FloatArray
-    normals: FloatArray
-    unit_rays: FloatArray
-    image_points: NDArray[np.float32]
-    image_normals: NDArray[np.float32]
-    image_ok: NDArray[np.bool_]
-    image_unit_rays: NDArray[np.float32]
-    view: DepthView
+def budget_m(range_m: FloatArray, config: AlignConfig) -> FloatArray:
+    """The sensor's systematic error budget at each distance, metres."""
+    return config.systematic_error_mm * 1e-3 + config.distance_error_fraction * range_m
 
 
-def _prepare(view: DepthView, step: int, margin: int) -> _Camera:
-    rays = ray_image(view.intrinsics)
-    unit = rays / np.linalg.norm(rays, axis=2, keepdims=True)
-    pts = camera_points_image(view.depth_m, rays)
-    valid = view.depth_m > 0
-    normals, ok = normal_image(pts, valid, 2)
-    # Only pixels well inside a surface: filtering and mixed returns bias the rim.
-    interior = cv2.erode(valid.astype(np.uint8), np.ones((2 * margin + 1, 2 * margin + 1),
-                                                          np.uint8)) > 0 if margin else valid
-    ok = ok & interior
-    sub = ok[::step, ::step]
-    return _Camera(points=pts[::step, ::step][sub].astype(np.float64),
-                   normals=normals[::step, ::step][sub].astype(np.float64),
-                   unit_rays=unit[::step, ::step][sub].astype(np.float64),
-                   image_points=pts, image_normals=normals, image_ok=ok,
-                   image_unit_rays=unit, view=view)
+def budget_shares(cams: list[SampledCamera], poses: FloatArray, x: FloatArray,
+                  config: AlignConfig) -> tuple[FloatArray, FloatArray]:
+    """(C,) the largest share of the budget a correction uses at any of the camera's
+    samples, and (C,) the largest shift, metres."""
+    shares, largest = np.zeros(len(cams)), np.zeros(len(cams))
+    for k, cam in enumerate(cams):
+        if len(cam.points) == 0:
+            continue
+        moved = shifts_m(cam, poses[k], x[k])
+        shares[k] = float(np.max(moved / budget_m(np.linalg.norm(cam.points, axis=1), config)))
+        largest[k] = float(moved.max())
+    return shares, largest
 
 
-@dataclass(frozen=True)
-class _Matches:
-    """Overlap samples of camera j on camera i: one equation row block per camera."""
-
-    row_i: FloatArray
-    """(M, 7) coefficients of camera i's unknowns."""
-    row_j: FloatArray
-    """(M, 7) coefficients of camera j's unknowns."""
-    rhs: FloatArray
-    """(M,) right-hand sides (minus the current gap), metres."""
-
-
-def _to_world(pose: FloatArray, points: FloatArray, directions: FloatArray
-              ) -> tuple[FloatArray, FloatArray]:
-    rot = pose[:3, :3]
-    return points @ rot.T + pose[:3, 3], directions @ rot.T
-
-
-def pair_matches(cams: list[_Camera], poses: FloatArray, offsets: FloatArray, i: int, j: int,
-                 config: AlignConfig) -> _Matches:
-    """Camera j's samples that land on camera i's surface, as equations (see module doc)."""
-    cj, ci = cams[j], cams[i]
-    pts_j = cj.points - offsets[j] * cj.unit_rays
-    p_j, n_j = _to_world(poses[j], pts_j, cj.normals)
-    r_j = cj.unit_rays @ poses[j][:3, :3].T
-    i_from_world = np.linalg.inv(poses[i])
-    in_i = p_j @ i_from_world[:3, :3].T + i_from_world[:3, 3]
-    front = in_i[:, 2] > 1e-6
-    pix = np.full((len(in_i), 2), -1.0)
-    pix[front] = project(ci.view.intrinsics, in_i[front])
-    x, y = np.rint(pix[:, 0]).astype(np.int64), np.rint(pix[:, 1]).astype(np.int64)
-    h, w = ci.image_ok.shape
-    inside = front & (x >= 0) & (x < w) & (y >= 0) & (y < h)
-    x, y = np.where(inside, x, 0), np.where(inside, y, 0)
-    unit_i = ci.image_unit_rays[y, x].astype(np.float64)
-    pts_i = ci.image_points[y, x].astype(np.float64) - offsets[i] * unit_i
-    p_i, n_i = _to_world(poses[i], pts_i, ci.image_normals[y, x].astype(np.float64))
-    r_i = unit_i @ poses[i][:3, :3].T
-    cos_lim = np.cos(np.radians(config.max_incidence_deg))
-    agree = np.sum(n_i * n_j, axis=1) >= np.cos(np.radians(config.max_normal_angle_deg))
-    use = (inside & ci.image_ok[y, x] & agree
-           & (-np.sum(n_i * r_i, axis=1) >= cos_lim) & (-np.sum(n_j * r_j, axis=1) >= cos_lim)
-           & (np.abs(in_i[:, 2] - pts_i[:, 2]) < config.gate_m))
-    p_i, p_j, r_i, r_j = p_i[use], p_j[use], r_i[use], r_j[use]
-    n = n_i[use] + n_j[use]
-    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-    gap = np.sum((p_j - p_i) * n, axis=1)
-
-    def row(p: FloatArray, centre: FloatArray, r: FloatArray) -> FloatArray:
-        return np.column_stack([np.cross(p - centre, n), n, np.sum(r * n, axis=1)])
-
-    return _Matches(row_i=-row(p_i, poses[i][:3, 3], r_i), row_j=row(p_j, poses[j][:3, 3], r_j),
-                    rhs=-gap)
+def heldout_confirmation(matches: dict[tuple[int, int], Matches], camera_count: int,
+                         config: AlignConfig, fixed: frozenset[int]) -> FloatArray:
+    """(C,) per camera, how much of its own correction, solved from one half of the
+    overlaps, the other half shows: the least-squares scale of the change the correction
+    predicts on the held-out gaps (left after the partner cameras' corrections), both
+    halves pooled. 1: all of it, 0: none (NaN: no held-out samples that it moves)."""
+    solved = {}
+    for half in (False, True):
+        subset = {pair: m.select(m.half == half) for pair, m in matches.items()}
+        solved[half] = solve({p: m for p, m in subset.items() if len(m.rhs)}, camera_count,
+                             config, fixed)
+    shown, predicted = np.zeros(camera_count), np.zeros(camera_count)
+    for (i, j), m in matches.items():
+        for half in (False, True):
+            x = solved[not half]  # held out: solved without these samples
+            rows = m.half == half
+            for own, row_own, other, row_other in ((i, m.row_i, j, m.row_j),
+                                                   (j, m.row_j, i, m.row_i)):
+                change = row_own[rows] @ x[own]
+                left = m.rhs[rows] - row_other[rows] @ x[other]
+                shown[own] += float(change @ left)
+                predicted[own] += float(change @ change)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(predicted > 0, shown / predicted, np.nan)
 
 
-def _prior(camera_count: int, config: AlignConfig) -> FloatArray:
-    """Prior precision of the unknowns: zero-mean priors on each (huge where a kind is
-    switched off), and a stiff one on the rig's mean rotation and translation, which the
-    overlaps cannot see (moving every camera alike moves the whole scene)."""
-    rot = 1.0 / np.radians(config.rotation_prior_deg) ** 2 if config.poses else 1e12
-    trans = 1.0 / config.translation_prior_m**2 if config.poses else 1e12
-    rng = 1.0 / config.offset_prior_m**2 if config.offsets else 1e12
-    precision = np.diag(np.tile([rot] * 3 + [trans] * 3 + [rng], camera_count))
-    mean_of = np.kron(np.ones((1, camera_count)) / camera_count, np.eye(_UNKNOWNS)[:6])
-    stiff = 1e6 * np.diag([rot] * 3 + [trans] * 3)
-    return precision + mean_of.T @ stiff @ mean_of
+def _all_matches(cams: list[SampledCamera], poses: FloatArray, offsets: FloatArray,
+                 config: AlignConfig) -> dict[tuple[int, int], Matches]:
+    matches = {}
+    for i in range(len(cams)):
+        for j in range(len(cams)):
+            if i != j:
+                m = pair_matches(cams, poses, offsets, i, j, config)
+                if len(m.rhs) >= config.min_matches:
+                    matches[(i, j)] = m
+    return matches
 
 
-def solve(matches: dict[tuple[int, int], _Matches], camera_count: int,
-          config: AlignConfig) -> FloatArray:
-    """(C, 7) corrections minimising the Huber loss of the equations plus the priors."""
-    x = np.zeros((camera_count, _UNKNOWNS))
-    prior = _prior(camera_count, config)
-    for _ in range(config.iterations):
-        normal = prior.copy()
-        rhs = np.zeros(camera_count * _UNKNOWNS)
-        for (i, j), m in matches.items():
-            residual = m.row_i @ x[i] + m.row_j @ x[j] - m.rhs
-            scale = np.abs(residual) / config.huber_m
-            weight = np.where(scale <= 1.0, 1.0, 1.0 / np.maximum(scale, 1e-12))
-            weight /= config.huber_m**2
-            for a, row_a in ((i, m.row_i), (j, m.row_j)):
-                block_a = slice(a * _UNKNOWNS, (a + 1) * _UNKNOWNS)
-                rhs[block_a] += (row_a * (weight * m.rhs)[:, None]).sum(axis=0)
-                for b, row_b in ((i, m.row_i), (j, m.row_j)):
-                    block_b = slice(b * _UNKNOWNS, (b + 1) * _UNKNOWNS)
-                    normal[block_a, block_b] += (row_a * weight[:, None]).T @ row_b
-        x = np.asarray(np.linalg.solve(normal, rhs), dtype=np.float64).reshape(
-            camera_count, _UNKNOWNS)
-    return x
+def _decide(matches: dict[tuple[int, int], Matches], cams: list[SampledCamera],
+            poses: FloatArray, applied: FloatArray, config: AlignConfig,
+            status: dict[int, CameraCorrection]) -> FloatArray:
+    """The round's corrections, refusing (one camera at a time, the worst first) those
+    beyond the budget (with what earlier rounds applied, which stays) and those the
+    held-out half does not show; ``status`` gets each camera's decision.
+
+    A camera refused as beyond the budget leaves the solve with its overlaps: its depth or
+    pose is off by more than the sensor explains, and held as an anchor it would drag its
+    neighbours towards its error. A camera whose correction is not shown stays in as an
+    anchor, held as captured."""
+    count = len(cams)
+    while True:
+        excluded = {k for k, s in status.items() if s.status == BEYOND_BUDGET}
+        active = {pair: m for pair, m in matches.items() if not excluded.intersection(pair)}
+        linked = {k for pair in active for k in pair}
+        for k in range(count):
+            if k not in linked and k not in status:
+                status[k] = CameraCorrection(NO_OVERLAP)
+        fixed = frozenset(status)
+        free = [k for k in range(count) if k not in fixed]
+        x = solve(active, count, config, fixed)
+        if not free:
+            return x
+        shares, largest = budget_shares(cams, poses, applied + x, config)
+        worst = max(free, key=lambda k: shares[k])
+        if shares[worst] > 1.0:
+            status[worst] = CameraCorrection(BEYOND_BUDGET, max_shift_m=float(largest[worst]),
+                                             budget_share=float(shares[worst]),
+                                             proposed=applied[worst] + x[worst])
+            continue
+        shown = np.nan_to_num(heldout_confirmation(active, count, config, fixed),
+                              nan=-np.inf)
+        weakest = min(free, key=lambda k: shown[k])
+        if shown[weakest] < config.min_confirmation:
+            status[weakest] = CameraCorrection(
+                NOT_SUPPORTED, max_shift_m=float(largest[weakest]),
+                budget_share=float(shares[weakest]), confirmation=_finite(shown[weakest]),
+                proposed=applied[weakest] + x[weakest])
+            continue
+        for k in free:
+            status[k] = CameraCorrection(APPLIED, max_shift_m=float(largest[k]),
+                                         budget_share=float(shares[k]),
+                                         confirmation=_finite(shown[k]),
+                                         proposed=applied[k] + x[k])
+        return x
 
 
-def _apply(poses: FloatArray, offsets: FloatArray, x: FloatArray
-           ) -> tuple[FloatArray, FloatArray]:
-    """Poses turned about their centres and moved; offsets less the range changes."""
-    new_poses = poses.copy()
-    for k, (omega, shift) in enumerate(zip(x[:, :3], x[:, 3:6], strict=True)):
-        rot, _ = cv2.Rodrigues(omega.reshape(3, 1))
-        centre = poses[k][:3, 3]
-        motion = np.eye(4)
-        motion[:3, :3] = rot
-        motion[:3, 3] = centre - rot @ centre + shift
-        new_poses[k] = motion @ poses[k]
-    return new_poses, offsets - x[:, 6]
+def _finite(value: float) -> float | None:
+    return float(value) if np.isfinite(value) else None
+
+
+def _match_counts(matches: dict[tuple[int, int], Matches], count: int) -> list[int]:
+    totals = [0] * count
+    for (i, j), m in matches.items():
+        totals[i] += len(m.rhs)
+        totals[j] += len(m.rhs)
+    return totals
 
 
 def estimate_corrections(views: list[DepthView], config: AlignConfig) -> Corrections:
-    """Range offsets and corrected poses of the cameras from their overlaps."""
-    camera_count = len(views)
+    """Range offsets and corrected poses of the cameras from their overlaps, each within
+    the sensor's budget and supported by held-out overlaps (else the camera is kept)."""
+    count = len(views)
     poses = np.array([np.asarray(v.world_from_depth, dtype=np.float64) for v in views])
-    offsets = np.zeros(camera_count)
-    if camera_count < 2 or not (config.offsets or config.poses):
-        return Corrections(offsets, poses)
-    cams = [_prepare(v, config.sample_step_px, config.edge_margin_px) for v in views]
+    offsets = np.zeros(count)
+    if count < 2 or not (config.offsets or config.poses):
+        return Corrections(offsets, poses, tuple(CameraCorrection(OFF) for _ in views))
+    cams = [sample_camera(v, config.sample_step_px, config.edge_margin_px) for v in views]
+    applied = np.zeros((count, 7))
+    refused: dict[int, CameraCorrection] = {}
+    counts = [0] * count
     for _ in range(config.rounds):
-        matches = {}
-        for i in range(camera_count):
-            for j in range(camera_count):
-                if i != j:
-                    m = pair_matches(cams, poses, offsets, i, j, config)
-                    if len(m.rhs) >= config.min_matches:
-                        matches[(i, j)] = m
-        if not matches:
-            break
-        poses, offsets = _apply(poses, offsets, solve(matches, camera_count, config))
-    return Corrections(offsets, poses)
+        matches = _all_matches(cams, poses, offsets, config)
+        counts = _match_counts(matches, count)
+        status: dict[int, CameraCorrection] = dict(refused)
+        x = _decide(matches, cams, poses, applied, config, status)
+        refused = {k: s for k, s in status.items() if s.status != APPLIED}
+        poses, offsets = apply_correction(poses, offsets, x)
+        applied += x
+    decided = tuple(_with_matches(status.get(k, CameraCorrection(NO_OVERLAP)), counts[k])
+                    for k in range(count))
+    return Corrections(offsets, poses, decided)
+
+
+def _with_matches(found: CameraCorrection, matches: int) -> CameraCorrection:
+    return CameraCorrection(found.status, matches, found.max_shift_m, found.budget_share,
+                            found.confirmation, found.proposed)
+
+
+def _pose_change(before: FloatArray, after: FloatArray) -> dict[str, float]:
+    turn = (np.trace(before[:3, :3].T @ after[:3, :3]) - 1) / 2
+    return {"rotation_deg": round(float(np.degrees(np.arccos(np.clip(turn, -1, 1)))), 4),
+            "translation_mm": round(float(np.linalg.norm(after[:3, 3] - before[:3, 3])) * 1e3,
+                                    3)}
+
+
+def _camera_figures(found: CameraCorrection) -> dict[str, object]:
+    """One camera's decision and the correction found (applied or not), for the report."""
+    shown = found.confirmation
+    return {"status": found.status, "matches": found.matches,
+            "rotation_deg": round(float(np.degrees(np.linalg.norm(found.proposed[:3]))), 4),
+            "translation_mm": round(float(np.linalg.norm(found.proposed[3:6])) * 1e3, 3),
+            "range_offset_mm": round(float(-found.proposed[6]) * 1e3, 3),
+            "max_shift_mm": round(found.max_shift_m * 1e3, 3),
+            "budget_share": round(found.budget_share, 3),
+            "confirmation": None if shown is None else round(shown, 3)}
+
+
+def align_report(camera_ids: list[str], poses_before: FloatArray, found: Corrections,
+                 config: AlignConfig) -> dict[str, Any]:
+    """The stage's figures: offsets and pose changes applied, each camera's decision with the
+    correction found, and a warning per correction refused as beyond the budget."""
+    warnings = [
+        f"align: {cid}'s correction refused: it would move what the camera sees by up to "
+        f"{c.max_shift_m * 1e3:.1f} mm, {c.budget_share:.1f}x the sensor's error budget "
+        f"({config.systematic_error_mm:g} mm + {config.distance_error_fraction * 100:g} % of "
+        "the distance); the camera is kept as captured (check the rig's calibration)"
+        for cid, c in zip(camera_ids, found.cameras, strict=True) if c.status == BEYOND_BUDGET]
+    return {
+        "depth_offset_mm": {cid: round(float(o) * 1e3, 3)
+                            for cid, o in zip(camera_ids, found.offsets_m, strict=True)},
+        "pose_change": {cid: _pose_change(np.asarray(b), a) for cid, b, a
+                        in zip(camera_ids, poses_before, found.world_from_depth, strict=True)},
+        "cameras": {cid: _camera_figures(c)
+                    for cid, c in zip(camera_ids, found.cameras, strict=True)},
+        "budget": {"systematic_error_mm": config.systematic_error_mm,
+                   "distance_error_fraction": config.distance_error_fraction},
+        "warnings": warnings,
+    }
 
 
 def apply_offsets(depth_m: NDArray[np.float32], rays: NDArray[np.float32],

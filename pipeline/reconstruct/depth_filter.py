@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -28,6 +29,11 @@ class DepthFilterConfig:
     the surface would be steeper than about atan(flying_ratio) against the view."""
     flying_min_jump_m: float = 0.01
     """Jumps below this are never flying pixels, whatever the footprint (noise floor)."""
+    flying_noise_factor: float = 5.0
+    """Jumps within this many times the local depth noise (`local_noise_m`) are noise, never
+    flying pixels (0: off). A far or structured-light surface jumps by centimetres between
+    neighbours all over; on a clean surface the noise is a millimetre and a mixed pixel's
+    jump stands out."""
     isolated_min_neighbours: int = 3
     """Pixels with fewer valid 8-neighbours than this are dropped as speckles."""
     bilateral_radius_px: int = 2
@@ -51,6 +57,8 @@ class DepthFilterConfig:
             raise ValueError("depth_filter: bilateral sigmas must be > 0")
         if self.flying_ratio <= 0:
             raise ValueError("depth_filter: flying_ratio must be > 0")
+        if self.flying_noise_factor < 0:
+            raise ValueError("depth_filter: flying_noise_factor must be >= 0")
 
 
 def _shifted(image: NDArray[np.float32], dy: int, dx: int) -> NDArray[np.float32]:
@@ -75,26 +83,60 @@ def apply_range(depth_m: DepthImage, config: DepthFilterConfig) -> DepthImage:
     return np.where(keep, depth, np.float32(0.0))
 
 
+_SECOND_DIFFERENCE_PER_SIGMA = 2.34
+"""Median, over Gaussian noise of unit deviation, of the larger of a pixel's second
+differences along x and y (measured)."""
+_NOISE_WINDOW = 5
+"""Side of the median's window on the grid of every second pixel (about 10 pixels)."""
+
+
+def local_noise_m(depth_m: DepthImage) -> DepthImage:
+    """(H, W) standard deviation of the depth noise around each pixel, metres.
+
+    Second differences cancel a slope. Their median over a window about 10 pixels wide
+    ignores an edge, and the mixed pixels along it, which reach a third of the window at
+    most; a noisy or quantised surface jumps all over the window and raises it. The
+    median runs on every second pixel (four times cheaper; noise is not that local). A
+    difference that needs an invalid pixel counts as 0, so the estimate errs low (towards
+    the plain jump limit) where depth is sparse.
+    """
+    padded = np.pad(depth_m.astype(np.float32), 1)
+    centre = padded[1:-1:2, 1:-1:2]
+    second = np.zeros(centre.shape, dtype=np.float32)
+    for ahead, behind in ((padded[1:-1:2, 2::2], padded[1:-1:2, 0:-2:2]),
+                          (padded[2::2, 1:-1:2], padded[0:-2:2, 1:-1:2])):
+        both = (centre > 0) & (ahead > 0) & (behind > 0)
+        second = np.maximum(second, np.where(both, np.abs(ahead - 2 * centre + behind),
+                                             np.float32(0.0)))
+    coarse = cv2.medianBlur(second, _NOISE_WINDOW)
+    height, width = depth_m.shape
+    full = np.repeat(np.repeat(coarse, 2, axis=0), 2, axis=1)[:height, :width]
+    return (full / np.float32(_SECOND_DIFFERENCE_PER_SIGMA)).astype(np.float32)
+
+
 def remove_flying_pixels(depth_m: DepthImage, focal_px: float,
                          config: DepthFilterConfig) -> DepthImage:
     """Drop pixels at depth edges whose depth jumps from a valid neighbour's too steeply.
 
     Flying pixels mix foreground and background returns; they sit on the steep side of a
     jump, so the farther pixel of each too-steep pair is dropped (the silhouette of the
-    nearer surface stays), then ``erode_edges_px`` more pixels are trimmed at holes.
+    nearer surface stays), then ``erode_edges_px`` more pixels are trimmed at holes. A jump
+    is too steep beyond ``flying_ratio`` footprints and beyond the local noise.
     """
     depth = depth_m.astype(np.float32)
     valid = depth > 0
     footprint = depth / np.float32(focal_px)
     limit = np.maximum(config.flying_ratio * footprint, config.flying_min_jump_m)
+    if config.flying_noise_factor > 0:
+        limit = np.maximum(limit, np.float32(config.flying_noise_factor)
+                           * local_noise_m(depth))
     flying = np.zeros(depth.shape, dtype=bool)
     neighbours = np.zeros(depth.shape, dtype=np.int32)
     for dy, dx in _neighbour_offsets(1):
         other = _shifted(depth, dy, dx)
         other_valid = other > 0
         neighbours += other_valid
-        step = np.float32(np.hypot(dy, dx))
-        flying |= valid & other_valid & (depth - other > limit * step)
+        flying |= valid & other_valid & (depth - other > limit * np.float32(np.hypot(dy, dx)))
     keep = valid & ~flying & (neighbours >= config.isolated_min_neighbours)
     for _ in range(config.erode_edges_px):
         inner = keep.copy()

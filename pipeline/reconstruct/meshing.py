@@ -41,8 +41,11 @@ class MeshingConfig:
     """Largest finest-cell size when the depth is automatic, metres. 16 mm (depth 7 for a
     1.8 m subject) puts the iso-surface well within a millimetre of smooth samples; halving
     it makes the solve about three times slower."""
-    poisson_max_depth: int = 9
-    """Upper bound of the automatic depth (time and memory grow about 4x per level)."""
+    poisson_max_depth: int = 10
+    """Upper bound of the automatic depth (time and memory grow about 3-4x per level). 10
+    keeps the cells within ``poisson_cell_m`` up to a scene of about 15 m (a room: 8 mm
+    cells for a room 8 m across, where 17 mm cells smooth away what a camera at 2-3 m
+    sees); a subject in a rig never reaches it."""
     poisson_linear_fit: bool = False
     """Place iso-vertices by linear interpolation of the implicit function."""
     poisson_scale: float = 1.1
@@ -55,8 +58,12 @@ class MeshingConfig:
     trim_density_quantile: float = 0.0
     """Vertices whose Poisson density is below this quantile are removed too (0: off; a
     fixed share cuts sparsely but truly seen regions, e.g. surfaces seen obliquely)."""
-    min_component_share: float = 0.01
-    """Connected pieces with fewer triangles than this share of the largest are dropped."""
+    min_component_share: float = 0.0
+    """Connected pieces with fewer triangles than this share of the largest are dropped
+    (0: off; a scene seen from afar, a room, breaks into many small true pieces)."""
+    min_component_samples: int = 3
+    """Connected pieces that fewer than this many samples lie on (within the trim
+    distance) are dropped: stray bits that almost nothing was seen on."""
     threads: int = 2
     """Threads of the neighbour queries (their results do not depend on it; -1: every
     core)."""
@@ -79,6 +86,9 @@ class MeshingConfig:
             raise ValueError("meshing: threads and poisson_threads must be >= 1 (-1: every core)")
         if not 0 <= self.trim_density_quantile < 1:
             raise ValueError("meshing: trim_density_quantile must lie in [0, 1)")
+        if self.min_component_samples < 0 or not 0 <= self.min_component_share < 1:
+            raise ValueError("meshing: need min_component_samples >= 0 and "
+                             "min_component_share in [0, 1)")
 
 
 def _one_per_cell(points: FloatArray, cell_m: float, rng: np.random.Generator
@@ -204,11 +214,41 @@ def poisson_surface(samples: FloatArray, normals: FloatArray, config: MeshingCon
         return vertices, faces
     tree = cKDTree(samples)
     dist, _ = tree.query(vertices, workers=config.threads)
-    keep = dist <= trim_distance(tree, config)
+    trim_m = trim_distance(tree, config)
+    keep = dist <= trim_m
     if config.trim_density_quantile > 0:
         keep &= density_arr >= np.quantile(density_arr, config.trim_density_quantile)
     vertices, faces = compact(vertices, _keep_faces(faces, keep))
-    return drop_small_components(vertices, faces, config.min_component_share)
+    vertices, faces = drop_unsupported_components(vertices, faces, samples, trim_m, config)
+    if config.min_component_share > 0:
+        vertices, faces = drop_small_components(vertices, faces, config.min_component_share)
+    return vertices, faces
+
+
+def vertex_components(faces: NDArray[np.int32], vertex_count: int) -> NDArray[np.int64]:
+    """(V,) connected-piece label of each vertex (vertices joined by the faces' edges)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    starts, ends = faces.ravel(), np.roll(faces, -1, axis=1).ravel()
+    graph = coo_matrix((np.ones(len(starts), dtype=np.int8), (starts, ends)),
+                       shape=(vertex_count, vertex_count))
+    _, labels = connected_components(graph, directed=False)
+    return np.asarray(labels, dtype=np.int64)
+
+
+def drop_unsupported_components(vertices: FloatArray, faces: NDArray[np.int32],
+                                samples: FloatArray, trim_m: float, config: MeshingConfig
+                                ) -> tuple[FloatArray, NDArray[np.int32]]:
+    """The mesh without the connected pieces that fewer than ``min_component_samples``
+    samples lie on (a sample lies on the piece of its nearest vertex, within ``trim_m``)."""
+    if len(faces) == 0 or config.min_component_samples == 0:
+        return vertices, faces
+    labels = vertex_components(faces, len(vertices))
+    dist, nearest = cKDTree(vertices).query(samples, workers=config.threads)
+    support = np.bincount(labels[nearest[dist <= trim_m]], minlength=int(labels.max()) + 1)
+    keep_face = support[labels[faces[:, 0]]] >= config.min_component_samples
+    return compact(vertices, faces[keep_face])
 
 
 def mesh_cloud(points_world: FloatArray, normals_world: NDArray[np.float32],

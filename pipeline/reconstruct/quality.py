@@ -1,4 +1,5 @@
-"""Quality figures of a reconstruction against a ground-truth mesh.
+"""Quality figures of a reconstruction against a ground-truth mesh, and, where there is no
+ground truth (real captures), against the raw depth it was made from (`depth_agreement`).
 
 Distances are measured between area-uniform surface samples and the other mesh, with
 open3d's ray-casting scene (exact closest points on triangles). Signs come from the normal
@@ -9,6 +10,7 @@ parity-based inside test would not.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -167,3 +169,73 @@ def compare(result: TriangleMesh, ground_truth: TriangleMesh, cameras: list[Came
                              "p95": float(np.percentile(angle_deg, 95))},
         "samples": config.sample_count,
     }
+
+
+@dataclass(frozen=True)
+class DepthAgreementConfig:
+    """How a mesh is measured against the raw depth it was made from (no ground truth)."""
+
+    bands_m: tuple[float, ...] = (0.0, 1.5, 2.5, 3.5, 4.5, 5.5)
+    """Edges of the depth bands (along each camera's z), metres."""
+    near_m: float = 0.05
+    """A raw point is explained by the mesh when it lies within this distance, metres."""
+    min_depth_m: float = 0.25
+    """Raw depths nearer than this are outside the capture volume, metres."""
+    max_depth_m: float = 5.5
+    """Raw depths farther than this are outside the capture volume, metres."""
+    pixel_step: int = 1
+    """Every this many pixels (in x and y) of each depth image are measured."""
+
+    def __post_init__(self) -> None:
+        if len(self.bands_m) < 2 or np.any(np.diff(self.bands_m) <= 0):
+            raise ValueError("depth agreement: bands_m must be at least two increasing edges")
+        if self.pixel_step < 1 or not self.near_m > 0:
+            raise ValueError("depth agreement: pixel_step >= 1 and near_m > 0 needed")
+
+
+def raw_points(depth_m: NDArray[np.float32], camera: CameraInfo, config: DepthAgreementConfig
+               ) -> tuple[FloatArray, FloatArray]:
+    """(N, 3) world points of the raw depth within the range and (N,) their depths, metres."""
+    from pipeline.reconstruct.registration import camera_points_image, ray_image
+
+    if camera.world_from_depth is None:
+        raise ValueError(f"camera {camera.id!r}: no world_from_depth")
+    step = config.pixel_step
+    depth = depth_m[::step, ::step]
+    inside = (depth >= config.min_depth_m) & (depth <= config.max_depth_m)
+    rays = ray_image(camera.depth_intrinsics)[::step, ::step]
+    points_cam = camera_points_image(depth, rays)[inside].astype(np.float64)
+    return transform(np.asarray(camera.world_from_depth), points_cam), depth[inside].astype(
+        np.float64)
+
+
+def depth_agreement(mesh: TriangleMesh, views: list[tuple[CameraInfo, NDArray[np.float32]]],
+                    config: DepthAgreementConfig) -> dict[str, Any]:
+    """How well the mesh explains each camera's raw depth (posed as the capture says).
+
+    Per camera: the median distance of its raw points to the mesh. Per depth band (all
+    cameras pooled): the share of raw points within ``near_m`` of the mesh. Millimetres and
+    shares in [0, 1].
+    """
+    scene = _Scene(mesh)
+    per_camera: dict[str, dict[str, float | int]] = {}
+    depths, distances = [], []
+    for camera, depth_m in views:
+        points, depth = raw_points(depth_m, camera, config)
+        if len(points) == 0:
+            continue
+        dist = np.abs(scene.closest(points)[0])
+        per_camera[camera.id] = {"median_mm": round(float(np.median(dist)) * 1e3, 2),
+                                 "within_near": round(float(np.mean(dist <= config.near_m)), 4),
+                                 "points": len(points)}
+        depths.append(depth)
+        distances.append(dist)
+    all_depth = np.concatenate(depths) if depths else np.zeros(0)
+    all_dist = np.concatenate(distances) if distances else np.zeros(0)
+    bands = {}
+    for low, high in zip(config.bands_m[:-1], config.bands_m[1:], strict=True):
+        in_band = (all_depth >= low) & (all_depth < high)
+        share = float(np.mean(all_dist[in_band] <= config.near_m)) if in_band.any() else None
+        bands[f"{low:g}-{high:g}"] = {"within_near": None if share is None else round(share, 4),
+                                      "points": int(in_band.sum())}
+    return {"cameras": per_camera, "bands_m": bands, "near_m": config.near_m}

@@ -61,8 +61,10 @@ class RemeshConfig:
     (`surface_lost_edges`): the kernel projects onto its input, so it has cut part of the
     surface away or left faces far longer than the target, as one round of it does where
     its input has faces tens of edges long (None: no check)."""
-    min_component_share: float = 0.01
-    """Pieces smaller than this share of the largest (in faces) are dropped first."""
+    min_component_share: float = 0.0
+    """Pieces smaller than this share of the largest (in faces) are dropped first (0: none;
+    the mesh stage drops the pieces nothing was seen on, and a scene's true pieces may be
+    small beside its largest)."""
     isolate: bool = True
     """Run the native kernel in a child process so a crash cannot take the caller down."""
     timeout_s: float = 300.0

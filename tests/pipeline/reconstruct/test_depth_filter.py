@@ -10,6 +10,7 @@ from pipeline.reconstruct.depth_filter import (
     apply_range,
     bilateral,
     filter_depth,
+    local_noise_m,
     remove_flying_pixels,
 )
 
@@ -67,6 +68,43 @@ def test_slanted_surfaces_are_not_flying_pixels() -> None:
     depth = np.tile(2.0 + xs * np.float32(np.tan(np.radians(60)) * 2.0 / FOCAL), (20, 1))
     out = remove_flying_pixels(depth.astype(np.float32), FOCAL, DepthFilterConfig())
     assert np.count_nonzero(out[1:-1, 1:-1]) == out[1:-1, 1:-1].size
+
+
+def test_a_noisy_far_surface_is_not_flying_pixels() -> None:
+    """A structured-light sensor at 4.5 m: noise of centimetres, jumps beyond four
+    footprints between neighbours all over the surface, so they are its noise."""
+    rng = np.random.default_rng(0)
+    depth = (4.5 + rng.normal(0, 0.015, (60, 60))).astype(np.float32)
+    kept = remove_flying_pixels(depth, FOCAL, DepthFilterConfig())[1:-1, 1:-1]
+    assert np.count_nonzero(kept) > 0.97 * kept.size
+    every_jump = remove_flying_pixels(depth, FOCAL, DepthFilterConfig(flying_noise_factor=0))
+    assert np.count_nonzero(every_jump[1:-1, 1:-1]) < 0.9 * kept.size
+
+
+@settings(max_examples=20, deadline=None)
+@given(sigma_m=st.floats(0.0005, 0.03), slope=st.floats(-0.01, 0.01), seed=st.integers(0, 99))
+def test_the_local_noise_is_the_depth_noise(sigma_m: float, slope: float, seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    xs = np.arange(80, dtype=np.float32)
+    plane = np.tile(3.0 + slope * xs, (80, 1))
+    depth = (plane + rng.normal(0, sigma_m, plane.shape)).astype(np.float32)
+    noise = local_noise_m(depth)[6:-6, 6:-6]
+    assert 0.6 * sigma_m < np.median(noise) < 1.5 * sigma_m
+
+
+@pytest.mark.parametrize("slanted", [False, True])
+def test_mixed_pixels_along_an_edge_are_removed(slanted: bool) -> None:
+    rng = np.random.default_rng(1)
+    ys, xs = np.mgrid[0:40, 0:40]
+    if not slanted:
+        ys = np.full_like(xs, 20)
+    depth = np.where(xs < ys, 1.2, 3.0).astype(np.float32)
+    edge = xs == ys  # a strip of mixed returns
+    mix = rng.uniform(0.1, 0.9, depth.shape)
+    depth[edge] = (1.2 * mix + 3.0 * (1 - mix))[edge]
+    out = remove_flying_pixels(depth, FOCAL, DepthFilterConfig())
+    assert np.count_nonzero(out[edge]) <= 0.05 * edge.sum()
+    assert np.all(out[(xs < ys - 2)] == 1.2)
 
 
 def test_speckles_are_dropped() -> None:

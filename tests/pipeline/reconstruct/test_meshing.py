@@ -8,6 +8,7 @@ from scipy.spatial import cKDTree
 
 from pipeline.reconstruct.meshing import (
     MeshingConfig,
+    drop_unsupported_components,
     mesh_cloud,
     poisson_disk_indices,
     poisson_disk_samples,
@@ -86,3 +87,32 @@ def test_a_thread_count_of_zero_is_named(field: str) -> None:
 def test_too_few_points_is_a_value_error() -> None:
     with pytest.raises(ValueError, match="points_world"):
         mesh_cloud(np.zeros((2, 3)), np.zeros((2, 3), np.float32), MeshingConfig())
+
+
+def _square(centre: np.ndarray, side_m: float, step_m: float) -> np.ndarray:
+    ticks = np.arange(-side_m / 2, side_m / 2 + 1e-9, step_m)
+    xs, ys = np.meshgrid(ticks, ticks)
+    return centre + np.column_stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)])
+
+
+def test_small_seen_pieces_of_a_scene_stay() -> None:
+    """A wall and a few small separate things before it, each truly seen (a share of the
+    largest piece would drop them)."""
+    wall = _square(np.zeros(3), 1.0, 0.003)
+    things = [_square(np.array([x, 0.3, 0.3]), 0.04, 0.003) for x in (-0.3, 0.0, 0.3)]
+    points = np.vstack([wall, *things])
+    normals = np.tile(np.array([0, 0, 1], np.float32), (len(points), 1))
+    mesh, _ = mesh_cloud(points, normals, MeshingConfig())
+    near_thing = [np.linalg.norm(mesh.vertices_m - t.mean(axis=0), axis=1).min() for t in things]
+    assert max(near_thing) < 0.005
+    assert np.abs(mesh.vertices_m[:, 2]).max() < 0.31
+
+
+def test_pieces_almost_no_sample_lies_on_are_dropped() -> None:
+    vertices = np.array([[0, 0, 0], [0.01, 0, 0], [0, 0.01, 0],
+                         [1, 0, 0], [1.01, 0, 0], [1, 0.01, 0]], dtype=np.float64)
+    faces = np.array([[0, 1, 2], [3, 4, 5]], dtype=np.int32)
+    samples = np.vstack([np.tile([0.003, 0.003, 0.0], (5, 1)), [[1.003, 0.003, 0.0]]])
+    kept_v, kept_f = drop_unsupported_components(vertices, faces, samples, 0.012,
+                                                 MeshingConfig(min_component_samples=3))
+    assert len(kept_f) == 1 and kept_v[:, 0].max() < 0.5
