@@ -71,7 +71,8 @@ def test_gateway_restart_during_upload(tmp_path: Path, how: signal.Signals) -> N
     time.sleep(1.2)  # older than VOLUMESH_STALE_UPLOAD_S, so the next gateway clears it
     again = Gateway(env, tmp_path / "gateway-2.log").start()
     try:
-        listed = httpx.get(again.url + "/api/v1/captures").json()
+        listed = httpx.get(again.url + "/api/v1/captures",
+                           headers={"Authorization": f"Bearer {key}"}).json()
         assert listed["total"] == 0 and listed["items"] == []
         assert not list((data_dir / "tmp").glob("upload-*"))
         assert not list((data_dir / "storage").rglob("*.zip"))
