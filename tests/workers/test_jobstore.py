@@ -2,28 +2,19 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
-from tests.integration.services import fresh_postgres_db, postgres_available
 from workers.db import init_db, make_engine, make_sessionmaker, normalise_url
 from workers.jobstore import JobStore
 from workers.models import Capture, Job
 from workers.settings import Settings
 
 
-@pytest.fixture(params=["sqlite", "postgresql"])
-def store(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[JobStore]:
-    if request.param == "sqlite":
-        settings = Settings(data_dir=tmp_path)
-        yield _store(settings)
-        return
-    if not postgres_available():
-        pytest.skip("no PostgreSQL on 127.0.0.1:5432")
-    with fresh_postgres_db() as url:
-        yield _store(Settings(data_dir=tmp_path, database_url=url))
+@pytest.fixture
+def store(store_settings: Settings) -> JobStore:
+    return _store(store_settings)
 
 
 def _store(settings: Settings) -> JobStore:

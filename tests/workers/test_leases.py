@@ -8,15 +8,13 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
 from datetime import timedelta
-from pathlib import Path
 from typing import Any
 
 import pytest
 from sqlalchemy import update
 
-from tests.integration.services import ROOT, fresh_postgres_db, postgres_available
+from tests.integration.services import ROOT
 from workers.db import init_db, make_engine, make_sessionmaker
 from workers.jobstore import JobStore
 from workers.leases import Heartbeat, claim, lapsed_leases, renew_held_by, sweep_lapsed
@@ -44,17 +42,9 @@ class Sent:
         return f"task-{len(self.tasks)}"
 
 
-@pytest.fixture(params=["sqlite", "postgresql"])
-def settings(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Settings]:
-    values: dict[str, Any] = {"data_dir": tmp_path, "stage_lease_s": 30.0,
-                              "stage_max_tries": 3}
-    if request.param == "sqlite":
-        yield Settings(**values)
-        return
-    if not postgres_available():
-        pytest.skip("no PostgreSQL on 127.0.0.1:5432")
-    with fresh_postgres_db() as url:
-        yield Settings(**values, database_url=url)
+@pytest.fixture
+def settings(store_settings: Settings) -> Settings:
+    return store_settings.model_copy(update={"stage_lease_s": 30.0, "stage_max_tries": 3})
 
 
 def _store(settings: Settings, jobs: int = 1) -> JobStore:

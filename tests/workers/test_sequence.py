@@ -4,14 +4,12 @@
 from __future__ import annotations
 
 import threading
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
 
 from app.web import SequenceManifest
-from tests.integration.services import fresh_postgres_db, postgres_available
 from workers.db import init_db, make_engine, make_sessionmaker
 from workers.jobstore import JobStore
 from workers.models import Capture, Job
@@ -27,15 +25,9 @@ from workers.settings import Settings
 PARENT = "p" * 32
 
 
-@pytest.fixture(params=["sqlite", "postgresql"])
-def store(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[JobStore]:
-    if request.param == "sqlite":
-        yield _store(Settings(data_dir=tmp_path))
-        return
-    if not postgres_available():
-        pytest.skip("no PostgreSQL on 127.0.0.1:5432")
-    with fresh_postgres_db() as url:
-        yield _store(Settings(data_dir=tmp_path, database_url=url))
+@pytest.fixture
+def store(store_settings: Settings) -> JobStore:
+    return _store(store_settings)
 
 
 def _store(settings: Settings) -> JobStore:
