@@ -30,18 +30,12 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import Any
-
-import cv2
-import numpy as np
-from numpy.typing import NDArray
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from tests.k4a_recordings import RecordingSpec, write_recording  # noqa: E402
+from tests.k4a_recordings import rig_recordings  # noqa: E402
 
-WIDTH, HEIGHT = 640, 576
 # The command as `python -m app` runs it, reporting its own peak memory when it ends (VmHWM:
 # unlike ru_maxrss, not inherited from this process, which holds the synthesis).
 _COMMAND = ("import atexit, sys\n"
@@ -51,47 +45,6 @@ _COMMAND = ("import atexit, sys\n"
             "atexit.register(peak)\n"
             "from app.cli import main\n"
             "main()\n")
-NOISE_FIELDS = 8
-
-
-def _scene(seed: int) -> tuple[NDArray[np.float64], list[NDArray[np.float64]],
-                               list[NDArray[np.bool_]]]:
-    """A sphere in front of a wall (mm), noise fields (sigma 2 mm) and hole masks to cycle."""
-    rng = np.random.default_rng(seed)
-    y, x = np.mgrid[0:HEIGHT, 0:WIDTH].astype(np.float64)
-    r2 = ((x - WIDTH / 2) ** 2 + (y - HEIGHT / 2) ** 2) / (HEIGHT / 3) ** 2
-    base = np.where(r2 < 1.0, 1500.0 - 400.0 * np.sqrt(np.clip(1.0 - r2, 0, 1)), 3000.0)
-    noise = [rng.normal(0.0, 2.0, base.shape) for _ in range(NOISE_FIELDS)]
-    holes = [rng.random(base.shape) < 0.05 for _ in range(NOISE_FIELDS)]
-    return base, noise, holes
-
-
-def _recordings(folder: Path, cameras: int, seconds: int) -> list[Path]:
-    frames = seconds * 30
-    rng = np.random.default_rng(0)
-    pictures = [np.clip(cv2.GaussianBlur(rng.integers(0, 256, (720, 1280, 3)).astype(np.uint8),
-                                         (0, 0), 1.5).astype(int) + 40 * i, 0, 255)
-                .astype(np.uint8) for i in range(6)]
-    paths = []
-    for device in range(cameras):
-        base, noise, holes = _scene(device)
-
-        def depth(k: int, base: Any = base, noise: Any = noise, holes: Any = holes
-                  ) -> NDArray[np.uint16]:
-            mm = base + 3.0 * np.sin(k / 10.0) + noise[k % NOISE_FIELDS]
-            mm[holes[(k * 3) % NOISE_FIELDS]] = 0
-            return np.rint(mm).astype(np.uint16)
-
-        spec = RecordingSpec(
-            depth_mode="NFOV_UNBINNED", frame_count=frames, distinct_colors=len(pictures),
-            sync_mode="MASTER" if device == 0 else "SUBORDINATE",
-            subordinate_delay_ns=160_000 * device, serial=f"{device + 1:012d}",
-            start_offset_ns=1_000_000_000 + 160_000 * device)
-        paths.append(write_recording(folder / f"device{device}.mkv", spec, depth,
-                                     lambda k: pictures[k % len(pictures)]))
-    return paths
-
-
 def _startup_s() -> float:
     """Wall seconds of the command doing nothing (`import-mkv --help`): the part of the timed
     run that does not depend on the recordings."""
@@ -117,7 +70,7 @@ def main() -> None:
     started = time.perf_counter()
     paths = sorted(workdir.glob("device*.mkv"))[: args.cameras]
     if len(paths) < args.cameras:
-        paths = _recordings(workdir, args.cameras, args.seconds)
+        paths = rig_recordings(workdir, args.cameras, args.seconds)
     synth_s = time.perf_counter() - started
     out_parent = Path(tempfile.mkdtemp(prefix="volumesh-mkv-out-", dir=args.out_parent))
     out = out_parent / ("capture.zip" if args.zip else "capture")

@@ -271,3 +271,48 @@ def calibration_json_of(depth: Any, color: Any, color_from_depth: NDArray[np.flo
     color_cam["Rt"] = {"Rotation": np.asarray(color_from_depth)[:3, :3].ravel().tolist(),
                        "Translation": np.asarray(color_from_depth)[:3, 3].tolist()}
     return json.dumps(document).encode()
+
+
+_RIG_WIDTH, _RIG_HEIGHT = 640, 576
+_NOISE_FIELDS = 8
+
+
+def _rig_scene(seed: int) -> tuple[NDArray[np.float64], list[NDArray[np.float64]],
+                                   list[NDArray[np.bool_]]]:
+    """A sphere in front of a wall (mm), noise fields (sigma 2 mm) and hole masks to cycle."""
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[0:_RIG_HEIGHT, 0:_RIG_WIDTH].astype(np.float64)
+    r2 = ((x - _RIG_WIDTH / 2) ** 2 + (y - _RIG_HEIGHT / 2) ** 2) / (_RIG_HEIGHT / 3) ** 2
+    base = np.where(r2 < 1.0, 1500.0 - 400.0 * np.sqrt(np.clip(1.0 - r2, 0, 1)), 3000.0)
+    noise = [rng.normal(0.0, 2.0, base.shape) for _ in range(_NOISE_FIELDS)]
+    holes = [rng.random(base.shape) < 0.05 for _ in range(_NOISE_FIELDS)]
+    return base, noise, holes
+
+
+def rig_recordings(folder: Path, cameras: int, seconds: int) -> list[Path]:
+    """One NFOV_UNBINNED recording per device of a synchronised rig (a master, subordinates
+    160 us apart), ``seconds`` at 30 fps: depth a noisy surface with holes, so that its PNGs
+    cost what real depth's do, and colour noisy 1280x720 JPEGs of real-world size."""
+    frames = seconds * 30
+    rng = np.random.default_rng(0)
+    pictures = [np.clip(cv2.GaussianBlur(rng.integers(0, 256, (720, 1280, 3)).astype(np.uint8),
+                                         (0, 0), 1.5).astype(int) + 40 * i, 0, 255)
+                .astype(np.uint8) for i in range(6)]
+    paths = []
+    for device in range(cameras):
+        base, noise, holes = _rig_scene(device)
+
+        def depth(k: int, base: Any = base, noise: Any = noise, holes: Any = holes
+                  ) -> NDArray[np.uint16]:
+            mm = base + 3.0 * np.sin(k / 10.0) + noise[k % _NOISE_FIELDS]
+            mm[holes[(k * 3) % _NOISE_FIELDS]] = 0
+            return np.rint(mm).astype(np.uint16)
+
+        spec = RecordingSpec(
+            depth_mode="NFOV_UNBINNED", frame_count=frames, distinct_colors=len(pictures),
+            sync_mode="MASTER" if device == 0 else "SUBORDINATE",
+            subordinate_delay_ns=160_000 * device, serial=f"{device + 1:012d}",
+            start_offset_ns=1_000_000_000 + 160_000 * device)
+        paths.append(write_recording(folder / f"device{device}.mkv", spec, depth,
+                                     lambda k: pictures[k % len(pictures)]))
+    return paths

@@ -1,9 +1,10 @@
 """The Celery app, configured from the service :class:`~workers.settings.Settings`.
 
 Queues: ``cpu`` (reconstruction stages), ``gpu`` (the LDM enhancement stage, so GPU machines
-take only that) and ``validate`` (quick reads of a freshly uploaded capture, kept apart so an
-upload never waits behind a long stage). Tasks are acknowledged after they finish and handed
-back when their worker dies, one task at a time per process.
+take only that) and ``validate`` (quick reads of a freshly uploaded capture, and the assembly
+of a closed stream, kept apart so an upload never waits behind a long stage). Tasks are
+acknowledged after they finish and handed back when their worker dies, one task at a time per
+process.
 
 ``celery -A workers.celery_app worker`` works (``app`` is built from the environment on first
 use); ``volumesh worker`` is the usual way in.
@@ -28,6 +29,9 @@ GPU_STAGES = frozenset({"enhance"})
 
 TASK_STAGE = "volumesh.stage"
 TASK_VALIDATE = "volumesh.validate_capture"
+TASK_ASSEMBLE = "volumesh.assemble_stream"
+"""A closed stream's frame-sets into one capture (`workers.streams`); on the validate queue, as
+it ends in reading that capture whole."""
 TASK_SEQUENCE = "volumesh.sequence"
 """A sequence job's export: its manifest, once every frame is over (`workers.sequence`)."""
 
@@ -81,7 +85,8 @@ def make_celery(settings: Settings) -> Celery:
         task_default_queue=QUEUE_CPU,
         task_default_exchange="volumesh",
         task_default_routing_key=QUEUE_CPU,
-        task_routes={TASK_VALIDATE: {"queue": QUEUE_VALIDATE, "routing_key": QUEUE_VALIDATE}},
+        task_routes={name: {"queue": QUEUE_VALIDATE, "routing_key": QUEUE_VALIDATE}
+                     for name in (TASK_VALIDATE, TASK_ASSEMBLE)},
         task_serializer="json",
         accept_content=["json"],
         task_ignore_result=True,  # results go to the job store, not a result backend

@@ -1,4 +1,4 @@
-"""SQLAlchemy models of the job store: API keys, captures, jobs, assets and rigs."""
+"""SQLAlchemy models of the job store: API keys, captures, jobs, assets, rigs and streams."""
 
 from __future__ import annotations
 
@@ -6,11 +6,22 @@ import uuid
 from datetime import UTC, datetime
 from typing import Any
 
-from sqlalchemy import JSON, Boolean, DateTime, Float, ForeignKey, Integer, String, Text
+from sqlalchemy import (
+    JSON,
+    BigInteger,
+    Boolean,
+    DateTime,
+    Float,
+    ForeignKey,
+    Integer,
+    String,
+    Text,
+)
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 
 JOB_STATES = ("queued", "running", "succeeded", "failed", "cancelled")
 TERMINAL_STATES = frozenset({"succeeded", "failed", "cancelled"})
+STREAM_STATES = ("receiving", "assembling", "closed", "failed")
 
 
 def utcnow() -> datetime:
@@ -188,3 +199,46 @@ class Rig(Base):
     calibration_capture_id: Mapped[str | None] = mapped_column(String(32), default=None)
     created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow,
                                                  index=True)
+
+
+class Stream(Base):
+    """A capture arriving frame-set by frame-set (docs/api.md, Streams); once closed, a worker
+    assembles the stored frame-sets into one capture (`workers.streams`)."""
+
+    __tablename__ = "streams"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
+    owner: Mapped[str] = mapped_column(String(120), index=True)
+    """``project:NAME`` for a key of a project, else ``key:ID`` (as a job's)."""
+    name: Mapped[str | None] = mapped_column(String(100), default=None)
+    state: Mapped[str] = mapped_column(String(16), default="receiving", index=True)
+    """receiving | assembling (closed by the client, a worker builds the capture) | closed
+    (``capture_id`` set) | failed (``error`` says why)."""
+    fps: Mapped[float] = mapped_column(Float)
+    depth_scale: Mapped[float] = mapped_column(Float)
+    cameras: Mapped[list[dict[str, Any]]] = mapped_column(JSON, default=list)
+    """The cameras as capture.json lists them, poses filled from ``rig_id``."""
+    rig_id: Mapped[str | None] = mapped_column(String(32), default=None)
+    frames_received: Mapped[int] = mapped_column(Integer, default=0)
+    last_frame_index: Mapped[int | None] = mapped_column(Integer, default=None)
+    """The highest frame index stored so far."""
+    capture_id: Mapped[str | None] = mapped_column(String(32), default=None)
+    error: Mapped[str | None] = mapped_column(Text, default=None)
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow,
+                                                 index=True)
+    updated_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+
+
+class StreamFrame(Base):
+    """One stored frame-set of a stream. The primary key makes each index count once, across
+    re-sends, gateway restarts and several gateways."""
+
+    __tablename__ = "stream_frames"
+
+    stream_id: Mapped[str] = mapped_column(ForeignKey("streams.id", ondelete="CASCADE"),
+                                           primary_key=True)
+    frame_index: Mapped[int] = mapped_column(Integer, primary_key=True)
+    timestamp_us: Mapped[int] = mapped_column(BigInteger, default=0)
+    """The device's timestamp of the frame-set, microseconds."""
+    size_bytes: Mapped[int] = mapped_column(Integer)
+    storage_key: Mapped[str] = mapped_column(String(200))

@@ -66,6 +66,8 @@ class Settings(BaseSettings):
     decoded, so reading a capture holds at most about 16 bytes per pixel of it."""
     max_json_bytes: int = Field(default=256 * 1024, gt=0)
     """Largest body of a JSON request."""
+    max_frame_set_bytes: int = Field(default=64 * MiB, gt=0)
+    """Largest frame-set zip a stream accepts (``PUT /api/v1/streams/{id}/frames/{index}``)."""
     stale_upload_s: float = Field(default=600.0, gt=0)
     """A partial upload untouched this long is from a gateway that died; the gateway deletes
     it while running (checked every ``stale_upload_s / 4``, at most every minute)."""

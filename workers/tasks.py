@@ -1,8 +1,9 @@
-"""Thin Celery tasks: ids in, work in :mod:`workers.runner` (a stage) and
-:mod:`workers.captures` (an upload's validation), state to the job store.
+"""Thin Celery tasks: ids in, work in :mod:`workers.runner` (a stage),
+:mod:`workers.captures` (an upload's validation) and :mod:`workers.streams` (a closed stream's
+assembly), state to the job store.
 
-The gateway sends these by name (``volumesh.stage``, ``volumesh.validate_capture``) and never
-imports this module.
+The gateway sends these by name (``volumesh.stage``, ``volumesh.validate_capture``,
+``volumesh.assemble_stream``) and never imports this module.
 """
 
 from __future__ import annotations
@@ -16,12 +17,13 @@ from celery.signals import worker_process_init, worker_ready, worker_shutdown
 
 from workers import presence
 from workers.captures import validate_capture
-from workers.celery_app import TASK_SEQUENCE, TASK_STAGE, TASK_VALIDATE
+from workers.celery_app import TASK_ASSEMBLE, TASK_SEQUENCE, TASK_STAGE, TASK_VALIDATE
 from workers.context import WorkerContext
 from workers.runner import JobCancelledError, SendTask, run_step, stage_name
 from workers.sequence import count_ended_frames, frame_over
 from workers.sequence_export import export_sequence
 from workers.settings import Settings, get_settings
+from workers.streams import assemble_stream, delete_chunks_if_over, finish_stream
 
 log = logging.getLogger(__name__)
 
@@ -165,3 +167,29 @@ def validate(self: Task, capture_id: str) -> None:
         log.exception("validating capture %s failed unexpectedly", capture_id)
         ctx.store.capture_rejected(capture_id, f"internal error while validating the capture "
                                    f"({type(exc).__name__}: {exc})")
+
+
+@shared_task(bind=True, name=TASK_ASSEMBLE)
+def assemble(self: Task, stream_id: str) -> None:
+    """Write a closed stream's frame-sets into one capture; mark it closed or failed (why)."""
+    ctx = _context(self)
+
+    def fail(error: str) -> None:
+        finish_stream(ctx, stream_id, error=error)
+        delete_chunks_if_over(ctx, stream_id)
+
+    try:
+        assemble_stream(ctx, stream_id)
+    except SoftTimeLimitExceeded:
+        fail(f"assembling the capture took longer than {ctx.settings.task_soft_time_limit_s} s "
+             "(VOLUMESH_TASK_SOFT_TIME_LIMIT_S)")
+    except _transient_errors() as exc:
+        if self.request.retries >= ctx.settings.task_max_retries:
+            fail(f"the assembly gave up after {self.request.retries} retries "
+                 f"({type(exc).__name__}: {exc})")
+            return
+        raise self.retry(exc=exc, countdown=_backoff_s(self.request.retries),
+                         max_retries=ctx.settings.task_max_retries) from exc
+    except Exception as exc:  # never leave the stream `assembling` for good
+        log.exception("assembling stream %s failed unexpectedly", stream_id)
+        fail(f"internal error while assembling the capture ({type(exc).__name__}: {exc})")

@@ -1,5 +1,6 @@
 """Imports every sub-command module so each registers itself on the Typer app."""
 
+import app.cli.agent
 import app.cli.calibrate
 import app.cli.enhance
 import app.cli.import_mkv

@@ -4,32 +4,21 @@ by a gateway that stopped while it waited for the verdict."""
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 from datetime import timedelta
 
-from sqlalchemy import delete, select
+from sqlalchemy import select
 
 from app.core.context import Gateway
+from workers.capture_registry import forget_capture
 from workers.models import Capture, utcnow
 
 log = logging.getLogger(__name__)
 
 
 def forget(gateway: Gateway, capture_id: str, state: str = "rejected") -> bool:
-    """Delete a capture still in ``state`` (rejected, or still validating): row and zip.
-
-    One conditional DELETE, so a capture a worker has just marked ready is never taken."""
-    with gateway.sessions() as session:
-        key = session.scalar(select(Capture.storage_key).where(Capture.id == capture_id))
-        deleted = session.execute(delete(Capture).where(Capture.id == capture_id,
-                                                        Capture.state == state))
-        session.commit()
-    if key is None or not deleted.rowcount:  # type: ignore[attr-defined]
-        return False
-    with contextlib.suppress(FileNotFoundError):
-        gateway.storage.delete(key)
-    return True
+    """Delete a capture still in ``state`` (rejected, or still validating): row and zip."""
+    return forget_capture(gateway.sessions, gateway.storage, capture_id, state)
 
 
 def forget_abandoned(gateway: Gateway) -> int:

@@ -2,36 +2,49 @@
 
 from __future__ import annotations
 
+import re
+
 from starlette.exceptions import HTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from app.core.problems import problem_response
 
 UPLOAD_PATH = "/api/v1/captures"
+FRAME_SET_PATH = re.compile(r"^/api/v1/streams/[^/]+/frames/[^/]+/?$")
 _MULTIPART_SLACK = 1024 * 1024
 
 
 class BodyLimitMiddleware:
-    """413 for bodies over the limit: uploads get the upload limit, everything else the JSON one.
+    """413 for bodies over the limit: uploads get the upload limit, a stream's frame-sets the
+    frame-set limit, everything else the JSON one.
 
     A declared Content-Length over the limit is refused before the app runs; a chunked body is
     counted as it arrives and stopped at the limit.
     """
 
-    def __init__(self, app: ASGIApp, upload_limit: int, json_limit: int) -> None:
+    def __init__(self, app: ASGIApp, upload_limit: int, json_limit: int,
+                 frame_set_limit: int | None = None) -> None:
         self.app = app
         self.upload_limit = upload_limit + _MULTIPART_SLACK
         self.json_limit = json_limit
+        self.frame_set_limit = json_limit if frame_set_limit is None else frame_set_limit
+
+    def _limit(self, scope: Scope) -> tuple[int, str]:
+        """The limit of this request's body, and what to call the body."""
+        path, method = scope["path"], scope["method"]
+        if method == "POST" and path.rstrip("/") == UPLOAD_PATH:
+            return self.upload_limit, "capture upload"
+        if method == "PUT" and FRAME_SET_PATH.match(path):
+            return self.frame_set_limit, "frame-set"
+        return self.json_limit, "request body"
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        is_upload = scope["path"].rstrip("/") == UPLOAD_PATH and scope["method"] == "POST"
-        limit = self.upload_limit if is_upload else self.json_limit
+        limit, what = self._limit(scope)
         declared = _content_length(scope)
         if declared is not None and declared > limit:
-            what = "capture upload" if is_upload else "request body"
             response = problem_response(
                 413, f"The {what} of {declared} bytes is larger than the limit of {limit} bytes.",
                 kind="body-too-large", instance=scope["path"])

@@ -108,6 +108,16 @@ class CaptureReader:
             color = decode_color_rgb(self._source.read(color_path), spec)
         return View(camera=camera, frame_index=frame_index, depth_m=depth_m, color_rgb=color)
 
+    def read_image_files(self, camera_id: str, frame_index: int) -> StoredFiles:
+        """One camera's files at one frame as stored, undecoded (open_capture checked their
+        headers): for a reader that passes them on, such as a stream's agent."""
+        camera = self.meta.camera(camera_id)
+        depth = _depth_spec(camera, frame_index, self.max_image_pixels)
+        color_path = _color_path(self._source, camera_id, frame_index)
+        color = None if color_path is None else bytes(self._source.read(color_path))
+        return StoredFiles(camera, frame_index, bytes(self._source.read(depth.path)),
+                           color, None if color_path is None else Path(color_path).suffix)
+
     def read_frame(self, frame_index: int, *, with_color: bool = True) -> list[View]:
         """Every camera's view at one frame, in capture.json's camera order."""
         if frame_index not in self.meta.frame_indices:
@@ -176,6 +186,19 @@ def depth_to_units(depth_m: NDArray[np.floating], depth_scale: float) -> NDArray
     """Metres to stored units: round to the scale, 0 stays 0, clipped to uint16."""
     units = np.rint(np.nan_to_num(depth_m, nan=0.0) / depth_scale)
     return np.clip(units, 0, np.iinfo(np.uint16).max).astype(np.uint16)
+
+
+@dataclass(frozen=True)
+class StoredFiles:
+    """One camera's image files at one frame, as a capture stores them."""
+
+    camera: CameraInfo
+    frame_index: int
+    depth_png: bytes
+    """16-bit greyscale PNG, depth in the capture's units."""
+    color: bytes | None = None
+    color_suffix: str | None = None
+    """.jpg, .jpeg or .png; None without colour."""
 
 
 @dataclass(frozen=True)

@@ -215,7 +215,7 @@ def _depth_units(frame: CameraFrame) -> NDArray[np.uint16]:
     return np.frombuffer(frame.depth_be, ">u2").reshape(height, width)
 
 
-def _view(camera: CameraInfo, index: int, frame: CameraFrame) -> StoredView:
+def recorded_view(camera: CameraInfo, index: int, frame: CameraFrame) -> StoredView:
     """The frame as the capture stores it: depth in the recorded millimetres (the capture's
     units, DEPTH_SCALE_M), an MJPG image as the recorded JPEG (no decode and re-encode)."""
     if frame.color is not None and frame.color.format == "MJPG":
@@ -283,7 +283,7 @@ def import_recordings(recordings: Recordings, out_dir: str | Path,
                                            frame_set.frames, strict=True):
                 assert frame is not None
                 counts["missing_color"] += info.color_format is not None and frame.color is None
-                yield _view(camera, index, frame)
+                yield recorded_view(camera, index, frame)
 
     meta = CaptureMeta(depth_scale=DEPTH_SCALE_M, cameras=recordings.cameras, frames=(),
                        target=recordings.target)

@@ -136,13 +136,18 @@ class SequenceTruth:
 
 
 def synthesize_sequence(mesh: TriangleMesh, config: SynthConfig, motion: MotionConfig,
-                        progress: Progress | None = None
+                        progress: Progress | None = None, *, by_frame: bool = False,
+                        first_frame: int = 0
                         ) -> tuple[CaptureMeta, Iterator[View], SequenceTruth]:
     """A capture of ``config.frame_count`` frames of the subject under ``motion``; views are
-    rendered lazily, camera by camera (frame by frame for an articulated motion; ``progress``
-    gets the fraction done)."""
+    rendered lazily, camera by camera (frame by frame for an articulated motion, or with
+    ``by_frame``: a stream's order, each frame-set whole before the next; ``progress`` gets
+    the fraction done). The views start at ``first_frame`` (a stream resumed part-way); the
+    capture's meta and truth still describe every frame."""
     if config.floor and motion.kind != "static":
         raise ValueError("floor: a moving subject is rendered without a floor")
+    if not 0 <= first_frame <= config.frame_count:
+        raise ValueError(f"first_frame: must be in [0, {config.frame_count}], got {first_frame}")
     subject = place_subject(mesh, config)
     cameras = true_cameras(subject, config)
     pose_rng, bias_rng, noise_rng = np.random.default_rng(config.seed).spawn(3)
@@ -161,28 +166,41 @@ def synthesize_sequence(mesh: TriangleMesh, config: SynthConfig, motion: MotionC
         joint_y_m=motion.joint_height_share * height_m, joint_blend_m=motion.joint_blend_m)
     if truth.bow_rad is not None:
         return meta, _bent_views(truth, cameras, written, biases, config, noise_rng,
-                                 progress), truth
+                                 progress, first_frame), truth
     caster = MeshRaycaster(subject)
+    renderings: list[Rendering | None] = [None] * len(cameras)
+
+    def view(index: int, frame: int) -> View:
+        rendering = renderings[index]
+        if rendering is None or motion.kind != "static":  # static: one rendering a camera
+            rendering = renderings[index] = _render(caster, cameras[index], poses[frame])
+        return _view(rendering, cameras[index], written[index], frame, biases[index], config,
+                     noise_rng)
 
     def views() -> Iterator[View]:
-        for index, (true_cam, cam) in enumerate(zip(cameras, written, strict=True)):
-            rendering = None
-            for frame, pose in enumerate(poses):
-                if rendering is None or motion.kind != "static":  # static: one rendering
-                    rendering = _render(caster, true_cam, pose)
-                yield _view(rendering, true_cam, cam, frame, biases[index], config, noise_rng)
+        for index in range(len(cameras)):
+            for frame in range(first_frame, config.frame_count):
+                yield view(index, frame)
+            renderings[index] = None  # done with this camera: hold one rendering at a time
             if progress is not None:
                 progress((index + 1) / len(cameras))
 
-    return meta, views(), truth
+    def views_by_frame() -> Iterator[View]:
+        for frame in range(first_frame, config.frame_count):
+            for index in range(len(cameras)):
+                yield view(index, frame)
+            if progress is not None:
+                progress((frame + 1) / config.frame_count)
+
+    return meta, views_by_frame() if by_frame else views(), truth
 
 
 def _bent_views(truth: SequenceTruth, cameras: list[CameraInfo], written: list[CameraInfo],
                 biases: list[float], config: SynthConfig, rng: np.random.Generator,
-                progress: Progress | None) -> Iterator[View]:
+                progress: Progress | None, first_frame: int) -> Iterator[View]:
     """Frame by frame: each frame's bent subject is a mesh of its own to cast against."""
     identity = np.eye(4)
-    for frame in range(truth.frame_count):
+    for frame in range(first_frame, truth.frame_count):
         caster = MeshRaycaster(truth.mesh(frame))
         for index, (true_cam, cam) in enumerate(zip(cameras, written, strict=True)):
             yield _view(_render(caster, true_cam, identity), true_cam, cam, frame,

@@ -1,13 +1,15 @@
 // The viewer page: reads ?asset=ID (with ?share=TOKEN, a share link's token, for a viewer with
-// no API key), ?compare=ID, ?sequence=URL, ?live=URL and ?backend=webgl2,
+// no API key), ?compare=ID, ?sequence=URL, ?live=STREAM_ID and ?backend=webgl2,
 // wires the panels, and publishes its state for automation:
 //   document.body.dataset.state = loading | ready (first frames drawn) | error
 //   window.viewerStats = {backend, triangles, bytes, decodeMs, firstRenderMs, ...}
+//   (with ?live: viewerStats.live = {state, frameIndex, points, updates, rate, ageMs, closed})
 import { Viewer, boundsOf, makeGltfLoader, parseGLB } from './render.js';
 import { API, ApiError, apiFetch, apiKey, fetchBytes, recentJobs, setApiKey } from './api.js';
 import { BANDS, HEAT_STOPS, QualityView, formatBytes, renderReport, rigFrusta } from './quality.js';
 import { bindUpload } from './upload.js';
 import { SequencePlayer, bindSequenceControls } from './sequence.js';
+import { listLiveStreams, start as startLive } from './live.js';
 
 const $ = (id) => document.getElementById(id);
 const params = new URLSearchParams(location.search);
@@ -197,6 +199,7 @@ class Page {
       e.preventDefault();
       setApiKey($('api-key').value.trim());
       this.refreshJobs();
+      listLiveStreams($('streams'), $('streams-section'));
     });
   }
 
@@ -283,7 +286,7 @@ async function main() {
   page.refreshJobs();
 
   const sequenceUrl = params.get('sequence');
-  const liveUrl = params.get('live');
+  const liveId = params.get('live');
   if (assetId) {
     await warm;
     await page.showAsset(assetId, early);
@@ -299,9 +302,8 @@ async function main() {
       },
     });
     showStats();
-  } else if (liveUrl) {
-    const live = await import('./live.js');
-    await live.start({ viewer, url: liveUrl, showMessage });
+  } else if (liveId) {
+    await startLive({ viewer, streamId: liveId, showMessage, bar: $('live-bar'), status: $('live-status') });
   } else {
     $('hint').hidden = false;
   }
@@ -309,6 +311,7 @@ async function main() {
   stats.firstRenderMs = performance.now(); // since navigation start
   showStats();
   document.body.dataset.state = 'ready';
+  listLiveStreams($('streams'), $('streams-section')); // after the first frame: off its path
   if (assetId) page.discoverCompare(assetId);
 }
 

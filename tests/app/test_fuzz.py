@@ -33,6 +33,10 @@ EXCLUDED_CHECKS: dict[str, list[Any]] = {
     "POST /api/v1/jobs": [positive_data_acceptance],
     # each pose a rigid 4x4 transform (an orthonormal block), and camera ids of one shape
     "POST /api/v1/rigs": [positive_data_acceptance],
+    # poses rigid, camera ids unique, colour intrinsics and transform given together
+    "POST /api/v1/streams": [positive_data_acceptance],
+    # any bytes are a valid `format: binary` body; a frame-set of the stream is rarely among them
+    "PUT /api/v1/streams/{stream_id}/frames/{index}": [positive_data_acceptance],
     # its 503 is the readiness report, not a failure: the fixture runs no stage worker, so no
     # worker consumes the cpu and gpu queues (tests/app/test_api.py checks that answer)
     "GET /readyz": [not_a_server_error],
@@ -56,7 +60,8 @@ def _operations(service: Service) -> list[schemathesis.APIOperation]:
 
 
 def _known_ids(service: Service) -> dict[str, str]:
-    """Ids of a real capture, rig, (cancelled) job and asset, so that 200s are checked too."""
+    """Ids of a real capture, rig, (cancelled) job, asset and stream, so that 200s are checked
+    too."""
     client, auth = service.client, service.auth
     capture = client.post("/api/v1/captures", content=service.capture_zip.read_bytes(),
                           headers={**auth, "Content-Type": "application/zip"}).json()["id"]
@@ -75,7 +80,12 @@ def _known_ids(service: Service) -> dict[str, str]:
         session.add(Asset(id=job, job_id=job, files={"mesh.glb": {
             "key": key, "sha256": hashlib.sha256(data).hexdigest(), "bytes": len(data),
             "content_type": "model/gltf-binary"}}))
-    return {"capture_id": capture, "rig_id": rig, "job_id": job, "asset_id": job}
+    # Receiving, with no frame-set: closing it is a 409, and it takes any frame index.
+    stream = client.post("/api/v1/streams", headers=auth, json={
+        "fps": 30, "depth_scale": 0.001, "cameras": [{"id": "cam0", "depth_intrinsics": {
+            "width": 64, "height": 48, "fx": 60, "fy": 60, "cx": 32, "cy": 24}}]}).json()["id"]
+    return {"capture_id": capture, "rig_id": rig, "job_id": job, "asset_id": job,
+            "stream_id": stream}
 
 
 def _strategies(operation: schemathesis.APIOperation, known: dict[str, str]

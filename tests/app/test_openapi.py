@@ -97,7 +97,7 @@ def test_a_real_error_matches_its_declaration(service: Service) -> None:
 def test_what_makes_a_resource_declares_its_location(
         operations: dict[tuple[str, str], dict[str, Any]]) -> None:
     for path, status in (("/api/v1/captures", "201"), ("/api/v1/jobs", "202"),
-                         ("/api/v1/rigs", "201")):
+                         ("/api/v1/rigs", "201"), ("/api/v1/streams", "201")):
         success = operations["POST", path]["responses"][status]
         assert success["headers"]["Location"]["required"], path
         assert "application/json" in success["content"], path

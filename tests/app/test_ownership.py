@@ -1,5 +1,5 @@
-"""Who sees what: two keys cannot see or touch each other's captures, jobs, assets or rigs
-through any route; keys of one project share; an admin key sees all; share links open one
+"""Who sees what: two keys cannot see or touch each other's captures, jobs, assets, rigs or
+streams through any route; keys of one project share; an admin key sees all; share links open one
 asset for anyone, until they expire."""
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ import pytest
 from app.core.security import create_key
 from app.core.sharing import share_token
 from tests.app.conftest import Service, admin_auth
+from tests.frame_sets import frame_set, stream_body
 from tests.integration.services import ANONYMOUS
 from workers.models import Asset
 
@@ -24,12 +25,13 @@ POSE = [[1.0, 0, 0, 0], [0, 1.0, 0, 0], [0, 0, 1.0, 0], [0, 0, 0, 1.0]]
 
 @dataclass
 class Owned:
-    """What key A made: a capture, a job with an asset, a rig."""
+    """What key A made: a capture, a job with an asset, a rig, a stream with a frame-set."""
 
     capture_id: str
     job_id: str
     asset_id: str
     rig_id: str
+    stream_id: str
 
 
 def _key(service: Service, name: str, project: str | None = None) -> dict[str, str]:
@@ -67,7 +69,13 @@ def _make(service: Service, auth: dict[str, str], tag: str) -> Owned:
         session.add(Asset(id=job_id, job_id=job_id, files={"mesh.glb": {
             "key": f"assets/{job_id}/mesh.glb", "sha256": hashlib.sha256(data).hexdigest(),
             "bytes": len(data), "content_type": "model/gltf-binary"}}))
-    return Owned(capture.json()["id"], job_id, job_id, rig.json()["id"])
+    stream = client.post("/api/v1/streams", json=stream_body(), headers=auth)
+    assert stream.status_code == 201, stream.text
+    stream_id = stream.json()["id"]
+    sent = client.put(f"/api/v1/streams/{stream_id}/frames/0", content=frame_set(0),
+                      headers={**auth, **ZIP})
+    assert sent.status_code == 201, sent.text
+    return Owned(capture.json()["id"], job_id, job_id, rig.json()["id"], stream_id)
 
 
 @pytest.fixture(scope="module")
@@ -101,9 +109,18 @@ ROUTES: dict[tuple[str, str], Callable[[Owned], Request]] = {
     ("GET", "/api/v1/rigs/{rig_id}"): lambda a: ("GET", f"/api/v1/rigs/{a.rig_id}", {}),
     ("GET", "/api/v1/rigs/{rig_id}/rig.json"):
         lambda a: ("GET", f"/api/v1/rigs/{a.rig_id}/rig.json", {}),
+    ("POST", "/api/v1/streams"): lambda a: ("POST", "/api/v1/streams", {}),
+    ("GET", "/api/v1/streams"): lambda a: ("GET", "/api/v1/streams?limit=100", {}),
+    ("GET", "/api/v1/streams/{stream_id}"):
+        lambda a: ("GET", f"/api/v1/streams/{a.stream_id}", {}),
+    ("PUT", "/api/v1/streams/{stream_id}/frames/{index}"):
+        lambda a: ("PUT", f"/api/v1/streams/{a.stream_id}/frames/1",
+                   {"content": frame_set(1)}),
+    ("POST", "/api/v1/streams/{stream_id}/close"):
+        lambda a: ("POST", f"/api/v1/streams/{a.stream_id}/close", {}),
 }
 # Routes that make something new: B makes its own, which A then cannot see (checked below).
-CREATING = {("POST", "/api/v1/captures"), ("POST", "/api/v1/rigs")}
+CREATING = {("POST", "/api/v1/captures"), ("POST", "/api/v1/rigs"), ("POST", "/api/v1/streams")}
 
 
 def test_the_walk_covers_every_route(service: Service) -> None:
@@ -126,19 +143,22 @@ def test_another_key_sees_and_touches_nothing(service: Service, route: tuple[str
         assert response.json()["type"].endswith("/not-found")
     else:
         assert response.status_code == 200, text
-        for thing in (a.capture_id, a.job_id, a.rig_id):
+        for thing in (a.capture_id, a.job_id, a.rig_id, a.stream_id):
             assert thing not in text, (route, thing)
     # A's things are untouched and still A's.
     job = service.client.get(f"/api/v1/jobs/{a.job_id}", headers=a_auth).json()
     assert job["state"] == "queued"
     assert service.client.get(f"/api/v1/rigs/{a.rig_id}", headers=a_auth).status_code == 200
+    stream = service.client.get(f"/api/v1/streams/{a.stream_id}", headers=a_auth).json()
+    assert (stream["state"], stream["frames_received"]) == ("receiving", 1)
 
 
 def test_what_b_makes_a_cannot_see(service: Service, two: tuple[dict[str, str], Owned,
                                                                 dict[str, str], Owned]) -> None:
     a_auth, a, b_auth, b = two
     for url in (f"/api/v1/captures/{b.capture_id}", f"/api/v1/jobs/{b.job_id}",
-                f"/api/v1/assets/{b.asset_id}", f"/api/v1/rigs/{b.rig_id}"):
+                f"/api/v1/assets/{b.asset_id}", f"/api/v1/rigs/{b.rig_id}",
+                f"/api/v1/streams/{b.stream_id}"):
         assert service.client.get(url, headers=a_auth).status_code == 404, url
         assert service.client.get(url, headers=b_auth).status_code == 200, url
     # A job of A's may not use B's rig, nor calibrate from B's capture.
@@ -146,6 +166,10 @@ def test_what_b_makes_a_cannot_see(service: Service, two: tuple[dict[str, str], 
                  {"calibration_capture_id": b.capture_id}):
         response = service.client.post("/api/v1/jobs", json=body, headers=a_auth)
         assert response.status_code == 404, (body, response.text)
+    # Nor may A's stream take its poses from B's rig.
+    response = service.client.post("/api/v1/streams", json=stream_body(rig_id=b.rig_id),
+                                   headers=a_auth)
+    assert response.status_code == 404, response.text
 
 
 def test_the_same_bytes_uploaded_by_two_owners(service: Service) -> None:
@@ -171,7 +195,8 @@ def test_keys_of_one_project_share_and_an_admin_sees_all(service: Service) -> No
     one, other = _key(service, "studio 1", "studio"), _key(service, "studio 2", "studio")
     made = _make(service, one, "studio")
     for url in (f"/api/v1/captures/{made.capture_id}", f"/api/v1/jobs/{made.job_id}",
-                f"/api/v1/assets/{made.asset_id}", f"/api/v1/rigs/{made.rig_id}"):
+                f"/api/v1/assets/{made.asset_id}", f"/api/v1/rigs/{made.rig_id}",
+                f"/api/v1/streams/{made.stream_id}"):
         assert service.client.get(url, headers=other).status_code == 200, url
         assert service.client.get(url, headers=admin_auth(service)).status_code == 200, url
         assert service.client.get(url, headers=_key(service, "outsider")).status_code == 404

@@ -10,13 +10,10 @@ from __future__ import annotations
 
 import asyncio
 import time
-from datetime import UTC, datetime
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Path, Request, Response
 from sqlalchemy import select
-from sqlalchemy.exc import IntegrityError
-from sqlalchemy.orm import Session
 from starlette.concurrency import run_in_threadpool
 
 from app.api.deps import CallerDep, GatewayDep, SessionDep
@@ -28,8 +25,9 @@ from app.core.security import can_use_capture
 from app.core.uploads import ReceivedUpload, receive_upload
 from app.core.zipcheck import ZipLimits, check_zip
 from app.schemas import API_PREFIX, ID_PATTERN, CapturePage, CapturePublic
+from workers.capture_registry import CaptureZip, Registered, register_capture
 from workers.celery_app import QUEUE_VALIDATE, TASK_VALIDATE
-from workers.models import Capture, CaptureGrant, new_id, utcnow
+from workers.models import Capture, CaptureGrant
 
 router = APIRouter(prefix="/captures", tags=["captures"])
 
@@ -71,51 +69,10 @@ def _limits(gateway: Gateway) -> ZipLimits:
                      max_compression_ratio=s.max_compression_ratio)
 
 
-def _register(gateway: Gateway, upload: ReceivedUpload, owner: str) -> tuple[str, bool, bool]:
-    """Store the upload once per content and grant it to ``owner``.
-
-    Returns (capture id, whether it must be validated, whether ``owner`` had it already)."""
-    capture_id = upload.sha256[:32]
-    with gateway.sessions() as session:
-        existing = session.get(Capture, capture_id)
-        if existing is not None and existing.state != "rejected":
-            stale = (existing.state == "validating" and (utcnow() - _aware(existing.created_at))
-                     .total_seconds() > gateway.settings.validation_timeout_s)
-            return capture_id, stale, not _grant(session, capture_id, owner)
-        if existing is not None:  # rejected by an earlier reader: read it again
-            forget(gateway, capture_id)
-    # A key of this upload's own: deleting a refused upload's zip can never take the zip of
-    # the same bytes uploaded again a moment later.
-    key = f"captures/{upload.sha256}-{new_id()[:8]}.zip"
-    gateway.storage.put_file(key, upload.path, move=True)
-    with gateway.sessions() as session:
-        session.add(Capture(id=capture_id, sha256=upload.sha256, size_bytes=upload.size_bytes,
-                            storage_key=key, state="validating"))
-        try:
-            session.commit()
-        except IntegrityError:  # the same content arrived twice at once: the other one won
-            session.rollback()
-            return capture_id, False, not _grant(session, capture_id, owner)
-        _grant(session, capture_id, owner)
-    return capture_id, True, False
-
-
-def _grant(session: Session, capture_id: str, owner: str) -> bool:
-    """Let ``owner`` use the capture; False when it could already."""
-    if session.get(CaptureGrant, (capture_id, owner)) is not None:
-        return False
-    session.add(CaptureGrant(capture_id=capture_id, owner=owner))
-    try:
-        session.commit()
-    except IntegrityError:  # the same owner uploaded it twice at once
-        session.rollback()
-        return False
-    return True
-
-
-def _aware(value: datetime) -> datetime:
-    # SQLite hands back naive datetimes; they were written in UTC.
-    return value.replace(tzinfo=UTC) if value.tzinfo is None else value
+def _register(gateway: Gateway, upload: ReceivedUpload, owner: str) -> Registered:
+    zipped = CaptureZip(upload.path, upload.sha256, upload.size_bytes)
+    return register_capture(gateway.sessions, gateway.storage, zipped, owner,
+                            gateway.settings.validation_timeout_s)
 
 
 def _state(gateway: Gateway, capture_id: str) -> Capture | None:
@@ -171,11 +128,11 @@ async def upload_capture(request: Request, response: Response, gateway: GatewayD
     upload = await receive_upload(request, settings.tmp_dir, settings.max_upload_bytes)
     try:
         await run_in_threadpool(check_zip, upload.path, _limits(gateway))
-        capture_id, needs_task, had_it = await run_in_threadpool(_register, gateway, upload,
-                                                                 caller.owner)
+        registered = await run_in_threadpool(_register, gateway, upload, caller.owner)
     finally:
         upload.path.unlink(missing_ok=True)
-    if needs_task:
+    capture_id = registered.capture_id
+    if registered.needs_validation:
         try:
             await run_in_threadpool(gateway.send_task, TASK_VALIDATE, [capture_id],
                                     QUEUE_VALIDATE)
@@ -183,7 +140,7 @@ async def upload_capture(request: Request, response: Response, gateway: GatewayD
             # Not queued, so never validated: do not keep it half-accepted.
             await run_in_threadpool(forget, gateway, capture_id, "validating")
             raise
-    if had_it:
+    if registered.had_it:
         response.headers["Volumesh-Deduplicated"] = "true"
     row = await _await_validation(gateway, capture_id)
     response.headers["Location"] = f"{API_PREFIX}/captures/{row.id}"

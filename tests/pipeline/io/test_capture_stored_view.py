@@ -75,3 +75,17 @@ def test_colour_given_twice_is_refused() -> None:
     with pytest.raises(ValueError, match="both"):
         StoredView(camera, 0, np.zeros((HEIGHT, WIDTH), np.uint16),
                    color_rgb=np.zeros((HEIGHT, WIDTH, 3), np.uint8), color_jpeg=b"\xff\xd8")
+
+
+def test_image_files_are_read_back_as_stored_without_a_decode(tmp_path: Path) -> None:
+    meta = _meta()
+    camera = meta.cameras[0]
+    units = np.arange(WIDTH * HEIGHT, dtype=np.uint16).reshape(HEIGHT, WIDTH)
+    jpeg = cv2.imencode(".jpg", np.zeros((HEIGHT, WIDTH, 3), np.uint8))[1].tobytes()
+    write_capture(tmp_path, meta, [StoredView(camera, 0, units, color_jpeg=jpeg),
+                                   StoredView(camera, 1, units)])
+    with open_capture(tmp_path) as reader:
+        first, second = (reader.read_image_files("cam0", f) for f in (0, 1))
+    assert first.depth_png == (tmp_path / "cam0/depth/000000.png").read_bytes()
+    assert (first.color, first.color_suffix) == (jpeg, ".jpg")
+    assert (second.frame_index, second.color, second.color_suffix) == (1, None, None)

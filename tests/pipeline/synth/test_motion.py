@@ -76,3 +76,24 @@ def test_an_articulated_bow_bends_the_upper_part_alone() -> None:
     by_key = {(v.camera.id, v.frame_index): v.depth_m for v in views}
     assert not np.array_equal(by_key[("cam0", 0)], by_key[("cam0", 1)])
     assert len(by_key) == 4 and meta.frame_indices == (0, 1)
+
+
+@pytest.mark.parametrize("kind", ["static", "rigid", "articulated"])
+def test_by_frame_gives_the_same_frames_frame_set_by_frame_set_from_any_first(kind: str
+                                                                              ) -> None:
+    config = SynthConfig(camera_count=2, frame_count=3, noise=False,
+                         rig=RigConfig(width=48, height=40))
+    motion = MotionConfig(kind=kind, frame_rate_hz=10, turn_deg_per_s=90)
+    _, by_camera, _ = synthesize_sequence(snowman_mesh(), config, motion)
+    expected = {(v.camera.id, v.frame_index): v.depth_m for v in by_camera}
+    _, by_frame, _ = synthesize_sequence(snowman_mesh(), config, motion, by_frame=True)
+    views = list(by_frame)
+    assert [(v.frame_index, v.camera.id) for v in views] == \
+        [(f, c) for f in range(3) for c in ("cam0", "cam1")]
+    for view in views:
+        np.testing.assert_array_equal(view.depth_m, expected[(view.camera.id, view.frame_index)])
+    _, resumed, _ = synthesize_sequence(snowman_mesh(), config, motion, by_frame=True,
+                                        first_frame=2)
+    assert [(v.frame_index, v.camera.id) for v in resumed] == [(2, "cam0"), (2, "cam1")]
+    with pytest.raises(ValueError, match="first_frame"):
+        synthesize_sequence(snowman_mesh(), config, motion, first_frame=4)

@@ -1,0 +1,114 @@
+"""The edge agent against a real `volumesh serve`, both as separate processes: the gateway
+killed for seconds in the middle of a 300-frame stream, and the agent killed and started again.
+Either way every frame-set of the source arrives exactly once, in order, and the stream closes
+into a capture that holds them all."""
+
+from __future__ import annotations
+
+import signal
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+
+from tests.integration.services import Process, base_env, free_port, wait_for
+from tests.stream_sources import replay_capture
+
+pytestmark = pytest.mark.slow
+FRAMES = 300
+FPS = 30.0
+
+
+def _serve(data_dir: Path, port: int, log: Path) -> Process:
+    serve = Process([sys.executable, "-m", "app", "serve", "--port", str(port), "--data-dir",
+                     str(data_dir)], base_env(), log).start()
+    wait_for(lambda: httpx.get(f"http://127.0.0.1:{port}/readyz", timeout=1).status_code == 200,
+             90, f"serve ready\n{serve.tail()}", interval_s=0.2)
+    return serve
+
+
+def _agent(url: str, key: str, capture: Path, spool: Path, log: Path) -> Process:
+    return Process([sys.executable, "-m", "app", "agent", "--gateway", url, "--key", key,
+                    "--source", f"capture:{capture}", "--spool", str(spool)],
+                   base_env(), log).start()
+
+
+def _stored_frames(client: httpx.Client, stream_id: str) -> int:
+    return int(client.get(f"/api/v1/streams/{stream_id}").json()["frames_received"])
+
+
+def _only_stream(client: httpx.Client) -> str:
+    items = client.get("/api/v1/streams").json()["items"]
+    assert len(items) == 1, items
+    return str(items[0]["id"])
+
+
+def _check_capture(client: httpx.Client, stream_id: str, data_dir: Path) -> None:
+    """The stream closed into a capture with every source frame once, timestamps in order."""
+    import json
+    import zipfile
+
+    stream = wait_for(lambda: (s := client.get(f"/api/v1/streams/{stream_id}").json())["state"]
+                      in ("closed", "failed") and s, 120, "the stream to close")
+    assert stream["state"] == "closed", stream
+    assert stream["frames_received"] == FRAMES
+    capture = client.get(f"/api/v1/captures/{stream['capture_id']}").json()
+    assert capture["frames"] == FRAMES
+    (zip_path,) = (data_dir / "storage" / "captures").glob(f"{capture['sha256']}-*.zip")
+    with zipfile.ZipFile(zip_path) as archive:
+        frames = json.loads(archive.read("capture.json"))["frames"]
+        depth = [n for n in archive.namelist() if "/depth/" in n]
+    assert [f["index"] for f in frames] == list(range(FRAMES))
+    assert [f["timestamp_us"] for f in frames] == [round(i * 1e6 / FPS) for i in range(FRAMES)]
+    assert len(depth) == 2 * FRAMES
+
+
+def test_a_gateway_down_for_ten_seconds_loses_and_repeats_nothing(tmp_path: Path) -> None:
+    capture = replay_capture(tmp_path, FRAMES, FPS)
+    data_dir, port = tmp_path / "data", free_port()
+    url = f"http://127.0.0.1:{port}"
+    serve = _serve(data_dir, port, tmp_path / "serve.log")
+    key = (data_dir / "api-key.txt").read_text().strip()
+    client = httpx.Client(base_url=url, timeout=30, headers={"Authorization": f"Bearer {key}"})
+    agent = _agent(url, key, capture, tmp_path / "spool", tmp_path / "agent.log")
+    try:
+        stream_id = wait_for(lambda: _only_stream(client), 30, "the agent's stream")
+        wait_for(lambda: _stored_frames(client, stream_id) >= 60, 30, "60 frame-sets")
+        serve.kill()
+        time.sleep(10.0)
+        assert agent.alive, agent.tail()
+        serve = _serve(data_dir, port, tmp_path / "serve.log")
+        assert agent.proc is not None
+        assert agent.proc.wait(120) == 0, agent.tail()
+        _check_capture(client, stream_id, data_dir)
+        log = agent.log.read_text()
+        assert "gateway away" in log and "gateway back" in log, log
+    finally:
+        agent.stop()
+        serve.stop(grace_s=5)
+
+
+def test_a_killed_agent_resumes_its_spool(tmp_path: Path) -> None:
+    capture = replay_capture(tmp_path, FRAMES, FPS)
+    data_dir, port = tmp_path / "data", free_port()
+    url = f"http://127.0.0.1:{port}"
+    serve = _serve(data_dir, port, tmp_path / "serve.log")
+    key = (data_dir / "api-key.txt").read_text().strip()
+    client = httpx.Client(base_url=url, timeout=30, headers={"Authorization": f"Bearer {key}"})
+    spool = tmp_path / "spool"
+    try:
+        agent = _agent(url, key, capture, spool, tmp_path / "agent-1.log")
+        stream_id = wait_for(lambda: _only_stream(client), 30, "the agent's stream")
+        wait_for(lambda: _stored_frames(client, stream_id) >= 100, 30, "100 frame-sets")
+        agent.kill(signal.SIGKILL)
+        stored_at_kill = _stored_frames(client, stream_id)
+        assert stored_at_kill < FRAMES
+        agent = _agent(url, key, capture, spool, tmp_path / "agent-2.log")
+        assert agent.proc is not None
+        assert agent.proc.wait(120) == 0, agent.tail()
+        assert _only_stream(client) == stream_id  # resumed, not a second stream
+        _check_capture(client, stream_id, data_dir)
+    finally:
+        serve.stop(grace_s=5)
