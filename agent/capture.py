@@ -2,8 +2,8 @@
 
 A replay is paced by its timestamps (unless fast) and waits when the spool is full; a live
 source is never held up: when the spool is full its frame-sets are dropped and counted.
-Every 1/preview_hz seconds of device time a frame-set carries a live preview, when every
-camera's pose is known.
+Every 1/preview_hz seconds of device time a frame-set also makes a live preview, when every
+camera's pose is known; it goes to ``on_preview`` (the preview sender), not into the spool.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import logging
 import os
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import Executor, ThreadPoolExecutor
 from dataclasses import dataclass, replace
 
@@ -88,12 +88,13 @@ class Previews:
 
 
 def run_capture(source: Source, spool: Spool, state: SpoolState, settings: CaptureSettings,
-                stats: Stats, stop: threading.Event) -> SpoolState:
+                stats: Stats, stop: threading.Event,
+                on_preview: Callable[[bytes], None] = lambda _: None) -> SpoolState:
     """Captures from the state's next position until the source ends (the state returned
-    says source_done) or ``stop``."""
+    says source_done) or ``stop``; each preview made goes to ``on_preview``."""
     pacer = Pacer(enabled=not (settings.fast or source.info.live))
     keeper = _Keeper(spool, stats, Previews(settings, source.info.depth_scale),
-                     source.info.live, stop)
+                     source.info.live, stop, on_preview)
     with ThreadPoolExecutor(settings.encoder_threads, thread_name_prefix="encode") as pool:
         for frame_set in source.frame_sets(state.next_position):
             pacer.wait(frame_set.timestamp_us, stop)
@@ -116,6 +117,7 @@ class _Keeper:
     previews: Previews
     live: bool
     stop: threading.Event
+    on_preview: Callable[[bytes], None]
 
     def keep(self, frame_set: FrameSet, state: SpoolState, pool: Executor) -> SpoolState:
         """The state after the frame-set: advanced when it was spooled."""
@@ -123,9 +125,11 @@ class _Keeper:
             self.stats.add(dropped=1)
             return state
         index, captured_at = state.next_index, time.time()
-        preview = (self.previews.encode(frame_set, index, captured_at)
-                   if self.previews.due(frame_set.timestamp_us) else None)
-        data = encode_frame_set(frame_set.views, index, preview, pool)
+        if self.previews.due(frame_set.timestamp_us):
+            preview = self.previews.encode(frame_set, index, captured_at)
+            if preview is not None:
+                self.on_preview(preview)
+        data = encode_frame_set(frame_set.views, index, pool)
         if not self.spool.put(index, frame_set.timestamp_us, data, wait=not self.live,
                               stop=self.stop):
             if not self.stop.is_set():

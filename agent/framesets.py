@@ -1,16 +1,14 @@
 """One frame-set as the zip a stream takes (docs/api.md, "Streams"): every camera's depth as a
-16-bit PNG, its colour as a JPEG (or PNG), and an optional ``preview.bin``.
+16-bit PNG and its colour as a JPEG (or PNG).
 
 Depth is encoded with ISA-L (pipeline.io.png16), a camera a thread: its deflate releases the
 GIL, so eight cameras share the cores. What is compressed already goes on as it is: a
 recording's JPEG, a replayed capture's files (no decode and re-encode). Entries are stored,
-not deflated: PNG and JPEG are compressed already.
+not deflated: PNG and JPEG are compressed already (agent.stored_zip writes them in one pass).
 """
 
 from __future__ import annotations
 
-import io
-import zipfile
 from collections.abc import Sequence
 from concurrent.futures import Executor
 from dataclasses import replace
@@ -20,12 +18,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from agent.sources import CameraImages
+from agent.stored_zip import stored_zip
 from pipeline.capture import CameraInfo
 from pipeline.io.capture_io import StoredFiles
 from pipeline.io.png16 import encode_png16
 
 JPEG_QUALITY = 90
-PREVIEW_ENTRY = "preview.bin"
 _PREVIEW_JPEG_FLAG = cv2.IMREAD_REDUCED_COLOR_4
 """Preview colour is decoded at a quarter of each side (the JPEG decoder skips the rest):
 a preview samples every few pixels anyway, and eight full 720p decodes cost ~40 ms."""
@@ -62,21 +60,14 @@ def _camera_files(images: CameraImages, index: int) -> list[tuple[str, bytes]]:
     return entries
 
 
-def encode_frame_set(views: Sequence[CameraImages], index: int, preview: bytes | None = None,
+def encode_frame_set(views: Sequence[CameraImages], index: int,
                      pool: Executor | None = None) -> bytes:
     """The zip of one frame-set numbered ``index``; cameras encoded side by side in ``pool``."""
     if pool is None:
         per_camera = [_camera_files(view, index) for view in views]
     else:
         per_camera = list(pool.map(lambda view: _camera_files(view, index), views))
-    buffer = io.BytesIO()
-    with zipfile.ZipFile(buffer, "w", compression=zipfile.ZIP_STORED) as archive:
-        for entries in per_camera:
-            for name, data in entries:
-                archive.writestr(name, data)
-        if preview is not None:
-            archive.writestr(PREVIEW_ENTRY, preview)
-    return buffer.getvalue()
+    return stored_zip([entry for camera in per_camera for entry in camera])
 
 
 def preview_inputs(views: Sequence[CameraImages], cameras: Sequence[CameraInfo],

@@ -14,6 +14,7 @@ from typing import Any
 
 from agent.capture import CaptureSettings, posed, run_capture
 from agent.gateway import Gateway, RefusedError, StoppedError, check_url
+from agent.preview_sender import PreviewSender
 from agent.sender import Senders
 from agent.sources import Source, SourceInfo, SourceOptions, open_source
 from agent.spool import Spool, SpoolState
@@ -111,7 +112,11 @@ def _stream(config: AgentConfig, source: Source, gateway: Gateway, spool: Spool,
         settings = CaptureSettings(fast=config.fast, preview_hz=config.preview_hz,
                                    posed_cameras=posed(source.info.cameras,
                                                        stream_cameras(state)))
-        state = run_capture(source, spool, state, settings, stats, stop)
+        previews = PreviewSender(gateway, state.stream_id, stats).start()
+        try:
+            state = run_capture(source, spool, state, settings, stats, stop, previews.offer)
+        finally:
+            previews.close()
     if stop.is_set():
         return AgentResult(state.stream_id, "interrupted", gateway_url=gateway.url)
     while not spool.wait_empty(POLL_INTERVAL_S):

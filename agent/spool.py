@@ -20,12 +20,13 @@ import json
 import os
 import re
 import threading
-from dataclasses import asdict, dataclass, replace
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any
 
 STATE_FILE = "state.json"
 _FRAME_NAME = re.compile(r"(\d{6})-(\d+)\.zip")
+_PROGRESS_FIELDS = ("next_index", "next_position", "source_done")
 
 
 @dataclass(frozen=True)
@@ -47,6 +48,11 @@ class SpoolState:
     def advanced(self, position: int) -> SpoolState:
         """The state after spooling the frame-set at ``position`` under next_index."""
         return replace(self, next_index=self.next_index + 1, next_position=position + 1)
+
+
+_FIXED_FIELDS = tuple(f.name for f in fields(SpoolState) if f.name not in _PROGRESS_FIELDS)
+"""What stays the same while a stream is captured (compared at every write: a change is
+written, never a stale copy)."""
 
 
 @dataclass(frozen=True)
@@ -80,6 +86,8 @@ class Spool:
         self._in_flight: set[int] = set()
         self._bytes = 0
         self._closed = False
+        self._fixed: tuple[tuple[Any, ...], str] | None = None
+        """The state's unchanging fields and their JSON, last written."""
         for leftover in self.frames_dir.glob(".*.tmp"):  # a write a kill interrupted
             leftover.unlink()
         for path in self.frames_dir.iterdir():
@@ -107,7 +115,18 @@ class Spool:
                              "delete the folder to start afresh") from None
 
     def write_state(self, state: SpoolState) -> None:
-        write_atomic(self.root / STATE_FILE, json.dumps(asdict(state)).encode())
+        write_atomic(self.root / STATE_FILE, self._state_json(state).encode())
+
+    def _state_json(self, state: SpoolState) -> str:
+        # Written once per frame-set: the stream's fields and cameras (kilobytes that never
+        # change) are encoded once, only the progress each time (dataclasses.asdict and
+        # json over eight cameras took 2.7 ms a frame-set, a tenth of the agent's CPU).
+        fixed = tuple(getattr(state, name) for name in _FIXED_FIELDS)
+        if self._fixed is None or self._fixed[0] != fixed:  # the same cameras: by identity
+            document = dict(zip(_FIXED_FIELDS, fixed, strict=True))
+            self._fixed = fixed, json.dumps({**document, "cameras": list(state.cameras)})
+        progress = json.dumps({name: getattr(state, name) for name in _PROGRESS_FIELDS})
+        return f"{self._fixed[1][:-1]}, {progress[1:]}"  # one JSON object of both
 
     def clear_state(self) -> None:
         (self.root / STATE_FILE).unlink(missing_ok=True)

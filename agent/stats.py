@@ -22,6 +22,9 @@ class Snapshot:
     dropped: int = 0
     """Live frame-sets not spooled: the spool was full."""
     rejected: int = 0
+    previews_sent: int = 0
+    previews_skipped: int = 0
+    """Previews replaced by a newer one before they went, or not taken by the gateway."""
     spooled: int = 0
     spooled_bytes: int = 0
     connection: str = "connecting"

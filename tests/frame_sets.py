@@ -1,5 +1,5 @@
 """Frame-sets of a stream as an agent sends them (docs/api.md, Streams): a zip of each camera's
-16-bit depth PNG, optional colour and an optional preview, built in memory."""
+16-bit depth PNG and optional colour, built in memory."""
 
 from __future__ import annotations
 
@@ -62,9 +62,5 @@ def pack(entries: dict[str, bytes]) -> bytes:
     return buffer.getvalue()
 
 
-def frame_set(index: int, cameras: Sequence[str] = CAMERAS, *, color: bool = False,
-              preview: bytes | None = None) -> bytes:
-    entries = frame_entries(index, cameras, color=color)
-    if preview is not None:
-        entries["preview.bin"] = preview
-    return pack(entries)
+def frame_set(index: int, cameras: Sequence[str] = CAMERAS, *, color: bool = False) -> bytes:
+    return pack(frame_entries(index, cameras, color=color))

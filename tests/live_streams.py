@@ -1,5 +1,5 @@
-"""Streams for the live-preview tests: two posed cameras looking at a sphere, frame-set zips
-carrying the agent's real preview.bin, and a gateway served by uvicorn in a thread."""
+"""Streams for the live-preview tests: two posed cameras looking at a sphere, frame-set zips,
+the agent's real preview.bin, and a gateway served by uvicorn in a thread."""
 
 from __future__ import annotations
 
@@ -59,15 +59,13 @@ def big_preview(index: int, points: int = 100_000) -> bytes:
                         rng.integers(0, 256, (points, 3), dtype=np.uint8))
 
 
-def frame_set(index: int, preview: bytes | None) -> bytes:
-    """A frame-set zip: every camera's depth as a 16-bit PNG, and ``preview`` if given."""
+def frame_set(index: int) -> bytes:
+    """A frame-set zip: every camera's depth as a 16-bit PNG."""
     buffer = io.BytesIO()
     with zipfile.ZipFile(buffer, "w", zipfile.ZIP_STORED) as archive:
         for camera_id, depth_m in DEPTH_M.items():
             units = np.round(depth_m / DEPTH_SCALE).astype(np.uint16)
             archive.writestr(f"{camera_id}/depth/{index:06d}.png", encode_png16(units))
-        if preview is not None:
-            archive.writestr("preview.bin", preview)
     return buffer.getvalue()
 
 

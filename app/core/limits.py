@@ -7,16 +7,19 @@ import re
 from starlette.exceptions import HTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from app.core.live import MAX_PREVIEW_BYTES
 from app.core.problems import problem_response
 
 UPLOAD_PATH = "/api/v1/captures"
 FRAME_SET_PATH = re.compile(r"^/api/v1/streams/[^/]+/frames/[^/]+/?$")
+PREVIEW_PATH = re.compile(r"^/api/v1/streams/[^/]+/preview/?$")
 _MULTIPART_SLACK = 1024 * 1024
 
 
 class BodyLimitMiddleware:
     """413 for bodies over the limit: uploads get the upload limit, a stream's frame-sets the
-    frame-set limit, everything else the JSON one.
+    frame-set limit, its live previews the largest well-formed preview, everything else the
+    JSON one.
 
     A declared Content-Length over the limit is refused before the app runs; a chunked body is
     counted as it arrives and stopped at the limit.
@@ -36,6 +39,8 @@ class BodyLimitMiddleware:
             return self.upload_limit, "capture upload"
         if method == "PUT" and FRAME_SET_PATH.match(path):
             return self.frame_set_limit, "frame-set"
+        if method == "PUT" and PREVIEW_PATH.match(path):
+            return MAX_PREVIEW_BYTES, "preview"
         return self.json_limit, "request body"
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:

@@ -29,6 +29,8 @@ PREVIEW_FORMAT = "volumesh.preview/1"
 MAX_HEADER_BYTES = 4096
 MAX_POINTS = 200_000
 POINT_BYTES = 15
+MAX_PREVIEW_BYTES = 4 + MAX_HEADER_BYTES + POINT_BYTES * MAX_POINTS
+"""The largest well-formed preview.bin (3 MB)."""
 """3 float32 position components and 3 uint8 colour channels a point."""
 FORGET_AFTER_S = 300.0
 """A stream's newest preview is dropped from memory after this long without a newer one."""

@@ -1,4 +1,4 @@
-"""What the stream routes call to reach live viewers: a frame-set's preview, a state change.
+"""What the stream routes call to reach live viewers: a preview, a state change.
 
 The hub (`app.core.live.PreviewHub`) lives on ``app.state.previews``, the Redis relay (with a
 Redis broker: `app.core.live_redis`) on ``app.state.preview_relay``; both functions may be
@@ -7,14 +7,10 @@ called from the request's thread pool or from the event loop.
 
 from __future__ import annotations
 
-import logging
-
 from starlette.applications import Starlette
 
-from app.core.live import PreviewHub, StateChange, check_preview
+from app.core.live import PreviewHub, StateChange
 from app.core.live_redis import RedisRelay
-
-log = logging.getLogger(__name__)
 
 
 def preview_hub(app: Starlette) -> PreviewHub:
@@ -23,16 +19,9 @@ def preview_hub(app: Starlette) -> PreviewHub:
 
 
 def publish_preview(app: Starlette, stream_id: str, frame_index: int, data: bytes) -> None:
-    """Relays the ``preview.bin`` of frame-set ``frame_index`` to the stream's viewers.
-
-    A malformed preview is dropped with a log line: the frame-set itself is stored already,
-    and the preview is a courtesy to viewers, so it never fails the request.
-    """
-    try:
-        check_preview(data)
-    except ValueError as exc:
-        log.warning("stream %s frame %d: preview.bin dropped: %s", stream_id, frame_index, exc)
-        return
+    """Relays a checked ``preview.bin`` (app.core.live.check_preview) of frame-set
+    ``frame_index`` to the stream's viewers: through Redis to every gateway's hub when the
+    service runs on Redis, else to this gateway's."""
     relay: RedisRelay | None = getattr(app.state, "preview_relay", None)
     if relay is not None:
         relay.publish(stream_id, frame_index, data)  # every gateway's hub, this one's too

@@ -57,7 +57,28 @@ export function previewSocketUrl(streamId) {
  * status line (inside `bar`). Resolves once the socket is open; the state is published on
  * window.viewerStats.live.
  */
-export async function start({ viewer, streamId, showMessage, bar, status }) {
+/** A button that queues the capture's every frame as one job (a sequence) and says so. */
+function reconstructButton(captureId, status, onJob) {
+  const button = document.createElement('button');
+  button.type = 'button';
+  button.id = 'live-reconstruct';
+  button.textContent = 'Reconstruct';
+  button.title = 'Queue a job on every frame of the assembled capture';
+  button.addEventListener('click', async () => {
+    button.disabled = true;
+    try {
+      const job = await apiFetch('jobs', { method: 'POST', json: { capture_id: captureId, frames: 'all' } });
+      status.append(` job ${String(job.id).slice(0, 12)} queued: it plays here when done (Jobs).`);
+      onJob?.(job);
+    } catch (err) {
+      button.disabled = false;
+      status.append(` ${err.message}`);
+    }
+  });
+  return button;
+}
+
+export async function start({ viewer, streamId, showMessage, bar, status, onJob }) {
   const stats = { state: 'connecting', frameIndex: null, points: 0, updates: 0, rate: 0, ageMs: null, closed: null };
   window.viewerStats.live = stats;
   bar.hidden = false;
@@ -107,11 +128,7 @@ export async function start({ viewer, streamId, showMessage, bar, status }) {
     stats.closed = message.state;
     status.replaceChildren(`Stream ${streamId.slice(0, 12)} ${message.state}`);
     if (message.capture_id) {
-      const link = document.createElement('a');
-      link.href = `${API}/captures/${encodeURIComponent(message.capture_id)}`;
-      link.textContent = `capture ${message.capture_id.slice(0, 12)}`;
-      link.title = 'The assembled capture: queue a job on it with POST /api/v1/jobs {"capture_id", "frames": "all"}';
-      status.append(': ', link);
+      status.append(`: capture ${message.capture_id.slice(0, 12)} `, reconstructButton(message.capture_id, status, onJob));
     } else if (message.error) {
       status.append(`: ${message.error}`);
     }

@@ -303,7 +303,10 @@ async function main() {
     });
     showStats();
   } else if (liveId) {
-    await startLive({ viewer, streamId: liveId, showMessage, bar: $('live-bar'), status: $('live-status') });
+    await startLive({
+      viewer, streamId: liveId, showMessage, bar: $('live-bar'), status: $('live-status'),
+      onJob: () => page.refreshJobs(),
+    });
   } else {
     $('hint').hidden = false;
   }

@@ -1,6 +1,6 @@
 """The capture loop on real sources, without a gateway: frame-sets spooled under consecutive
-indices with the state after each, previews at their rate, a live source dropping when the
-spool is full, a replay paced by its timestamps."""
+indices with the state after each, previews at their rate (beside the spool), a live source
+dropping when the spool is full, a replay paced by its timestamps."""
 
 from __future__ import annotations
 
@@ -41,18 +41,19 @@ def test_a_replay_spools_every_frame_set_with_previews_at_their_rate(
     spool, stats = Spool(tmp_path, 10**9), Stats()
     settings = CaptureSettings(fast=True, preview_hz=5.0,
                                posed_cameras=posed(source.info.cameras, source.info.cameras))
+    previews: list[bytes] = []
     state = run_capture(source, spool, replace(STATE, next_index=20, next_position=3),
-                        settings, stats, threading.Event())
+                        settings, stats, threading.Event(), previews.append)
     source.close()
     assert (state.next_index, state.next_position, state.source_done) == (25, 8, True)
     assert spool.read_state() == state
     zips = _zips(tmp_path)
     assert sorted(zips) == [20, 21, 22, 23, 24]  # positions 3..7 under the next indices
-    with_preview = [i for i, z in zips.items() if "preview.bin" in z.namelist()]
+    decoded = [decode_preview(data) for data in previews]
     # One in each 200 ms of device time (5 Hz): frames at 0.3 s (the first), 0.4 s, 0.6 s.
-    assert with_preview == [20, 21, 23]
-    preview = decode_preview(zips[23].read("preview.bin"))
-    assert preview.frame_index == 23 and len(preview.positions_m) > 1000
+    assert [preview.frame_index for preview in decoded] == [20, 21, 23]
+    assert all(len(preview.positions_m) > 1000 for preview in decoded)
+    assert not any("preview.bin" in z.namelist() for z in zips.values())  # never spooled
     assert all(n.endswith("/000022.png") or n.endswith("/000022.jpg")
                for n in zips[22].namelist())
     assert stats.snapshot(0, 0, 0).captured == 5
@@ -63,8 +64,10 @@ def test_without_poses_there_is_no_preview(capture_zip: Path, tmp_path: Path) ->
     unposed = tuple(replace(c, world_from_depth=None) for c in source.info.cameras)
     assert posed(source.info.cameras, unposed) is None
     spool = Spool(tmp_path, 10**9)
-    run_capture(source, spool, STATE, CaptureSettings(fast=True), Stats(), threading.Event())
-    assert not any("preview.bin" in z.namelist() for z in _zips(tmp_path).values())
+    previews: list[bytes] = []
+    run_capture(source, spool, STATE, CaptureSettings(fast=True), Stats(), threading.Event(),
+                previews.append)
+    assert previews == [] and _zips(tmp_path)
 
 
 def test_a_live_source_drops_frame_sets_while_the_spool_is_full(capture_zip: Path,

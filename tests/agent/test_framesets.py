@@ -47,11 +47,11 @@ def _views() -> tuple[StoredView, ...]:
 def test_a_frame_set_decodes_back_with_lossless_depth(threads: int) -> None:
     views = _views()
     pool = ThreadPoolExecutor(threads) if threads else None
-    data = encode_frame_set(views, 42, preview=b"PREVIEW", pool=pool)
+    data = encode_frame_set(views, 42, pool=pool)
     archive = zipfile.ZipFile(io.BytesIO(data))
     assert sorted(archive.namelist()) == [
         "a/depth/000042.png", "b/color/000042.jpg", "b/depth/000042.png",
-        "c/color/000042.jpg", "c/depth/000042.png", "preview.bin"]
+        "c/color/000042.jpg", "c/depth/000042.png"]
     assert all(info.compress_type == zipfile.ZIP_STORED for info in archive.infolist())
     for view in views:
         png = np.frombuffer(archive.read(f"{view.camera.id}/depth/000042.png"), np.uint8)
@@ -62,7 +62,6 @@ def test_a_frame_set_decodes_back_with_lossless_depth(threads: int) -> None:
     color = cv2.imdecode(np.frombuffer(archive.read("b/color/000042.jpg"), np.uint8),
                          cv2.IMREAD_COLOR)[:, :, ::-1]
     assert np.abs(color.astype(int) - views[1].color_rgb.astype(int)).mean() < 3  # JPEG, RGB
-    assert archive.read("preview.bin") == b"PREVIEW"
     if pool is not None:
         pool.shutdown()
 
@@ -84,11 +83,6 @@ def test_a_capture_s_files_go_on_as_stored_under_the_stream_s_index() -> None:
     np.testing.assert_allclose(depth_m["d"], _depth(4) * 0.001, rtol=1e-6)
     assert colors["d"] is not None
     np.testing.assert_array_equal(colors["d"], _rgb(48, 64, 1)[:, :, ::-1])  # BGR file -> RGB
-
-
-def test_without_preview_there_is_no_preview_entry() -> None:
-    data = encode_frame_set(_views()[:1], 0)
-    assert zipfile.ZipFile(io.BytesIO(data)).namelist() == ["a/depth/000000.png"]
 
 
 def test_preview_inputs_are_metres_rgb_and_posed_cameras_fit_for_the_encoder() -> None:

@@ -3,11 +3,13 @@ and a state that says where a resumed run goes on."""
 
 from __future__ import annotations
 
+import json
 import signal
 import subprocess
 import sys
 import threading
 import time
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import pytest
@@ -85,6 +87,17 @@ def test_one_frame_set_larger_than_the_cap_still_goes_into_an_empty_spool(
     assert spool.full()
 
 
+def test_the_state_file_is_the_whole_state_each_time(tmp_path: Path) -> None:
+    # The unchanging fields are encoded once: a changed camera or stream still shows.
+    spool = Spool(tmp_path, max_bytes=10)
+    for state in (STATE, STATE.advanced(4), replace(STATE, cameras=({"id": "cam1"},)),
+                  replace(STATE, stream_id="s2", source_done=True)):
+        spool.write_state(state)
+        written = json.loads((tmp_path / "state.json").read_text())
+        assert written == {**asdict(state), "cameras": list(state.cameras)}
+        assert Spool(tmp_path, max_bytes=10).read_state() == state
+
+
 def test_an_unreadable_state_is_one_line_saying_what_to_do(tmp_path: Path) -> None:
     Spool(tmp_path, max_bytes=10)
     (tmp_path / "state.json").write_text("{not json")
@@ -94,6 +107,7 @@ def test_an_unreadable_state_is_one_line_saying_what_to_do(tmp_path: Path) -> No
 
 WRITER = """
 import sys, threading
+from dataclasses import asdict, replace
 from pathlib import Path
 from agent.spool import Spool, SpoolState
 spool = Spool(Path(sys.argv[1]), 10**12)

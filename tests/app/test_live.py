@@ -37,12 +37,16 @@ class Gateway:
         assert answer.status_code == 201, answer.text
         return str(answer.json()["id"])
 
-    def put(self, stream_id: str, index: int, preview: bytes | None) -> dict[str, Any]:
+    def put(self, stream_id: str, index: int) -> dict[str, Any]:
         answer = self.http.put(f"/api/v1/streams/{stream_id}/frames/{index}",
-                               content=frame_set(index, preview),
+                               content=frame_set(index),
                                headers={"Content-Type": "application/zip"})
         assert answer.status_code in (200, 201), answer.text
         return dict(answer.json())
+
+    def preview(self, stream_id: str, data: bytes) -> httpx.Response:
+        return self.http.put(f"/api/v1/streams/{stream_id}/preview", content=data,
+                             headers={"Content-Type": "application/octet-stream"})
 
     @contextlib.contextmanager
     def socket(self, stream_id: str, key: str | None = None, **options: Any
@@ -81,21 +85,38 @@ def test_previews_arrive_in_order_and_as_sent(gateway: Gateway) -> None:
     with gateway.socket(stream_id) as ws:
         for index in range(4):
             preview = sphere_preview(index)
-            assert gateway.put(stream_id, index, preview)["stored"] is True
+            assert gateway.preview(stream_id, preview).status_code == 204
             assert ws.recv(timeout=10) == preview  # the agent's bytes, unchanged
-        # A re-send and an older frame are not relayed; a malformed preview is dropped and
-        # its frame-set still stored.
-        assert gateway.put(stream_id, 2, sphere_preview(2))["stored"] is False
-        assert gateway.put(stream_id, 10, sphere_preview(10))["stored"] is True
+        # An older frame's preview (late, or sent again) is not relayed.
+        assert gateway.preview(stream_id, sphere_preview(2)).status_code == 204
+        assert gateway.preview(stream_id, sphere_preview(10)).status_code == 204
         assert _index(ws.recv(timeout=10)) == 10
-        assert gateway.put(stream_id, 7, sphere_preview(7))["stored"] is True
-        assert gateway.put(stream_id, 11, b"\x10\x00\x00\x00not a preview")["stored"] is True
-        assert gateway.put(stream_id, 12, None)["stored"] is True
-        assert gateway.put(stream_id, 13, sphere_preview(13))["stored"] is True
+        assert gateway.preview(stream_id, sphere_preview(7)).status_code == 204
+        malformed = gateway.preview(stream_id, b"\x10\x00\x00\x00not a preview")
+        assert malformed.status_code == 422, malformed.text
+        assert malformed.json()["type"].endswith("/invalid-preview")
+        assert gateway.put(stream_id, 12)["stored"] is True  # frame-sets are another path
+        assert gateway.preview(stream_id, sphere_preview(13)).status_code == 204
         assert _index(ws.recv(timeout=10)) == 13
     # A late viewer gets the newest preview at once.
     with gateway.socket(stream_id) as ws:
         assert _index(ws.recv(timeout=10)) == 13
+
+
+def test_a_preview_needs_a_receiving_stream_of_the_caller(gateway: Gateway,
+                                                          service: Service) -> None:
+    stream_id = gateway.create_stream()
+    with service.client.app.state.gateway.sessions() as session:  # type: ignore[attr-defined]
+        _, other_key = create_key(session, "other previewer", project="elsewhere")
+    other = gateway.http.put(f"/api/v1/streams/{stream_id}/preview", content=sphere_preview(0),
+                             headers={"Authorization": f"Bearer {other_key}"})
+    assert other.status_code == 404, other.text
+    too_big = gateway.preview(stream_id, b"\0" * (4 + 4096 + 15 * 200_000 + 1))
+    assert too_big.status_code == 413, too_big.text
+    assert gateway.put(stream_id, 0)["stored"] is True
+    assert gateway.http.post(f"/api/v1/streams/{stream_id}/close").status_code == 202
+    late = gateway.preview(stream_id, sphere_preview(1))
+    assert late.status_code == 409 and late.json()["type"].endswith("/stream-not-receiving")
 
 
 def test_a_slow_viewer_skips_to_the_newest(gateway: Gateway) -> None:
@@ -105,7 +126,7 @@ def test_a_slow_viewer_skips_to_the_newest(gateway: Gateway) -> None:
     with gateway.socket(stream_id, max_queue=1) as ws:
         sent = 40
         for index in range(sent):  # 3 MB each: the socket buffers hold a few at most
-            gateway.put(stream_id, index, big_preview(index, points=200_000))
+            assert gateway.preview(stream_id, big_preview(index, points=200_000)).status_code == 204
         received = []
         while not received or received[-1] != sent - 1:
             received.append(_index(ws.recv(timeout=20)))
@@ -142,7 +163,8 @@ def test_another_owners_stream_closes_with_4404(gateway: Gateway, service: Servi
 def test_closing_the_stream_tells_the_viewer(gateway: Gateway) -> None:
     stream_id = gateway.create_stream()
     with gateway.socket(stream_id) as ws:
-        gateway.put(stream_id, 0, sphere_preview(0))
+        assert gateway.put(stream_id, 0)["stored"] is True
+        assert gateway.preview(stream_id, sphere_preview(0)).status_code == 204
         assert _index(ws.recv(timeout=10)) == 0
         answer = gateway.http.post(f"/api/v1/streams/{stream_id}/close")
         assert answer.status_code == 202, answer.text

@@ -16,7 +16,7 @@ from app.core.live_redis import relay_for
 from app.core.security import create_key
 from app.main import create_app
 from tests.integration.services import Redis
-from tests.live_streams import frame_set, free_port, served, sphere_preview, stream_body
+from tests.live_streams import free_port, served, sphere_preview, stream_body
 from workers.settings import Settings
 
 pytestmark = pytest.mark.timeout(120)
@@ -55,10 +55,10 @@ def test_a_preview_reaches_the_viewers_of_every_gateway(two_gateways: tuple[str,
     with viewer(first_url) as here, viewer(second_url) as there:
         for index in range(3):
             preview = sphere_preview(index)
-            answer = httpx.put(f"{first_url}/api/v1/streams/{stream_id}/frames/{index}",
-                               content=frame_set(index, preview),
-                               headers={**auth, "Content-Type": "application/zip"})
-            assert answer.status_code == 201, answer.text
+            answer = httpx.put(f"{first_url}/api/v1/streams/{stream_id}/preview",
+                               content=preview,
+                               headers={**auth, "Content-Type": "application/octet-stream"})
+            assert answer.status_code == 204, answer.text
             assert here.recv(timeout=10) == preview
             assert there.recv(timeout=10) == preview
 

@@ -31,7 +31,6 @@ from workers.models import Capture
 
 ZIP = {"Content-Type": "application/zip"}
 POSE = [[1.0, 0, 0, 0], [0, 1.0, 0, 0], [0, 0, 1.0, 0.5], [0, 0, 0, 1.0]]
-PREVIEW = b"\x02\x00\x00\x00{}"  # relayed as it is; its format is the live hub's to check
 
 
 def _create(service: Service, **extra: Any) -> dict[str, Any]:
@@ -78,7 +77,7 @@ def test_a_stream_stores_each_frame_set_once_and_assembles_a_capture(service: Se
     assert stream["state"] == "receiving" and stream["frames_received"] == 0
     assert stream["preview_url"] == f"/api/v1/streams/{sid}/preview"
     for index in (2, 0, 1):  # out of order, as retries deliver them
-        body = frame_set(index, color=index == 1, preview=PREVIEW if index == 2 else None)
+        body = frame_set(index, color=index == 1)
         sent = _put(service, sid, index, body, timestamp_us=1_000_000 + 33_333 * index)
         assert sent.status_code == 201, sent.text
         assert sent.json()["stored"] is True
@@ -109,7 +108,7 @@ def test_a_stream_stores_each_frame_set_once_and_assembles_a_capture(service: Se
         assert archive.read("cam1/depth/000002.png") == depth_png(2)
     assert document["frames"] == [{"index": i, "timestamp_us": 1_000_000 + 33_333 * i}
                                   for i in range(3)]
-    assert "cam0/color/000001.jpg" in names and "preview.bin" not in names
+    assert "cam0/color/000001.jpg" in names
     assert [c["id"] for c in document["cameras"]] == list(CAMERAS)
     assert _chunks(service, sid) == []
 
@@ -152,11 +151,12 @@ def _png_colour(entries: dict[str, bytes]) -> dict[str, bytes]:
     (_eight_bit, "cam0/depth/000000.png"),
     (_bad_checksum, "'cam0/depth/000000.png' is damaged"),
     (lambda e: {**e, "notes.txt": b"hello"}, "notes.txt"),
+    (lambda e: {**e, "preview.bin": b"\x02\x00\x00\x00{}"}, "PUT /streams/{id}/preview"),
     (lambda e: {**e, "cam0/depth/000001.png": depth_png(1)}, "cam0/depth/000001.png"),
     (_png_colour, "cam0/color/000000.png"),
     (None, "not a readable zip"),
 ], ids=["missing camera", "wrong size", "8-bit", "damaged header", "extra entry",
-        "other index", "not a PNG", "not a zip"])
+        "a preview inside", "other index", "not a PNG", "not a zip"])
 def test_a_malformed_frame_set_is_refused_naming_the_entry(service: Service, malformed: Any,
                                                            names: str) -> None:
     sid = _create(service)["id"]

@@ -112,3 +112,42 @@ def test_a_killed_agent_resumes_its_spool(tmp_path: Path) -> None:
         _check_capture(client, stream_id, data_dir)
     finally:
         serve.stop(grace_s=5)
+
+
+def test_a_viewer_sees_the_agents_previews_as_they_are_captured(tmp_path: Path) -> None:
+    """Previews go beside the frame-sets: each reaches the viewer's socket soon after its
+    frame-set was captured, in capture order."""
+    import json
+    import struct
+
+    from websockets.sync.client import connect
+
+    frames = 150  # 5 s at 30 fps: 25 previews at 5 Hz
+    capture = replay_capture(tmp_path, frames, FPS)
+    data_dir, port = tmp_path / "data", free_port()
+    url = f"http://127.0.0.1:{port}"
+    serve = _serve(data_dir, port, tmp_path / "serve.log")
+    key = (data_dir / "api-key.txt").read_text().strip()
+    client = httpx.Client(base_url=url, timeout=30, headers={"Authorization": f"Bearer {key}"})
+    agent = _agent(url, key, capture, tmp_path / "spool", tmp_path / "agent.log")
+    previews: list[tuple[int, float]] = []  # frame index, age at arrival (s)
+    try:
+        stream_id = wait_for(lambda: _only_stream(client), 30, "the agent's stream")
+        socket_url = url.replace("http", "ws") + f"/api/v1/streams/{stream_id}/preview"
+        with connect(socket_url, max_size=None, open_timeout=10) as socket:
+            socket.send(json.dumps({"key": key}))
+            for message in socket:
+                if isinstance(message, str):
+                    break  # the stream stopped receiving
+                (length,) = struct.unpack_from("<I", message)
+                header = json.loads(message[4:4 + length])
+                previews.append((header["frame_index"], time.time() - header["captured_at"]))
+        assert agent.proc is not None
+        assert agent.proc.wait(120) == 0, agent.tail()
+    finally:
+        agent.stop()
+        serve.stop(grace_s=5)
+    indices = [index for index, _ in previews]
+    assert len(previews) >= 10, previews  # of 25 made while the socket was open
+    assert indices == sorted(set(indices))
+    assert max(age for _, age in previews) < 2.0, previews

@@ -1,4 +1,4 @@
-"""The viewer's live preview in Debian's Chromium: frame-sets with previews PUT at 5 Hz to a
+"""The viewer's live preview in Debian's Chromium: frame-sets and their previews PUT at 5 Hz to a
 live gateway show as a point cloud that keeps updating, and the stream's close shows its
 capture."""
 
@@ -34,7 +34,7 @@ def red_sphere_preview(index: int) -> bytes:
 
 
 class Sender(threading.Thread):
-    """PUTs frame-sets with previews at 5 Hz, as an agent does, until stopped."""
+    """PUTs frame-sets and their previews at 5 Hz, as an agent does, until stopped."""
 
     def __init__(self, gateway: LiveGateway, stream_id: str) -> None:
         super().__init__(name="live-sender", daemon=True)
@@ -49,10 +49,13 @@ class Sender(threading.Thread):
             while not self.stop.is_set():
                 started = time.monotonic()
                 answer = client.put(f"/api/v1/streams/{self.stream_id}/frames/{self.sent}",
-                                    content=frame_set(self.sent, red_sphere_preview(self.sent)),
+                                    content=frame_set(self.sent),
                                     headers={"Content-Type": "application/zip"})
-                if answer.status_code != 201:
-                    self.failures.append(answer.text)
+                preview = client.put(f"/api/v1/streams/{self.stream_id}/preview",
+                                     content=red_sphere_preview(self.sent),
+                                     headers={"Content-Type": "application/octet-stream"})
+                if (answer.status_code, preview.status_code) != (201, 204):
+                    self.failures.append(answer.text + preview.text)
                     return
                 self.sent += 1
                 self.stop.wait(max(0.0, 0.2 - (time.monotonic() - started)))
@@ -103,8 +106,15 @@ def test_live_preview_updates_and_shows_the_close(playwright: Any, gateway: Live
         page.wait_for_function("window.viewerStats.live.closed === 'closed'", timeout=60_000)
         capture_id = httpx.get(f"{gateway.url}/api/v1/streams/{stream_id}",
                                headers=gateway.auth).json()["capture_id"]
-        assert page.get_attribute("#live-status a", "href") == f"/api/v1/captures/{capture_id}"
         assert "closed" in page.inner_text("#live-status")
+        assert capture_id[:12] in page.inner_text("#live-status")
+        page.click("#live-reconstruct")  # every frame of the capture, as one sequence job
+        page.wait_for_function(
+            "document.querySelector('#live-status').textContent.includes('queued')",
+            timeout=30_000)
+        jobs = httpx.get(f"{gateway.url}/api/v1/jobs", headers=gateway.auth).json()["items"]
+        assert [(job["capture_id"], job["frames_total"]) for job in jobs] == [
+            (capture_id, sender.sent)], jobs
         assert log.errors() == []
 
 

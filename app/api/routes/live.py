@@ -1,4 +1,8 @@
-"""WebSocket /streams/{id}/preview: a stream's live point-cloud previews as they arrive.
+"""A stream's live point-cloud previews: PUT /streams/{id}/preview from the agent, relayed at
+once to every viewer of WebSocket /streams/{id}/preview.
+
+The agent sends each preview beside its frame-sets, not behind them, so a viewer sees the rig
+as it is now even while frame-sets wait in the agent's spool; nothing of a preview is stored.
 
 Browsers cannot set headers on a WebSocket, so the client's first message is the key, as text
 ``{"key": "<api key>"}`` within ``FIRST_MESSAGE_S``; the server closes with 4401 for a missing
@@ -18,14 +22,19 @@ import re
 import time
 from dataclasses import dataclass
 
-from fastapi import APIRouter, WebSocket
+from fastapi import APIRouter, Request, Response, WebSocket
 from sqlalchemy import bindparam, select
 from starlette.concurrency import run_in_threadpool
 from starlette.websockets import WebSocketDisconnect
 
+from app.api.deps import CallerDep, GatewayDep
+from app.api.routes.streams import StreamId
 from app.core.context import Gateway
-from app.core.live import FINAL_STATES, PreviewHub, StateChange, Subscription
+from app.core.live import FINAL_STATES, PreviewHub, StateChange, Subscription, check_preview
+from app.core.live_publish import publish_preview
+from app.core.problems import WRITE, ProblemError, problem_responses
 from app.core.security import Caller, find_caller
+from app.core.streams import load_stream
 from app.schemas import ID_PATTERN
 from workers.models import Stream
 
@@ -59,6 +68,40 @@ def _read_stream(gateway: Gateway, stream_id: str) -> _Snapshot | None:
     if row is None:
         return None
     return _Snapshot(row.owner, StateChange(row.state, row.capture_id, row.error))
+
+
+_PREVIEW_BODY: dict[str, object] = {"requestBody": {
+    "required": True,
+    "description": "One preview.bin (volumesh.preview/1, docs/api.md): a downsampled fused "
+                   "point cloud of the frame-set just captured.",
+    "content": {"application/octet-stream": {"schema": {"type": "string", "format": "binary"}}}}}
+
+
+@router.put("/{stream_id}/preview", status_code=204, openapi_extra=_PREVIEW_BODY,
+            summary="Send the stream's live preview",
+            responses={204: {"description": "Relayed to the stream's viewers (or dropped as "
+                                             "older than the last one relayed)."},
+                       **problem_responses(WRITE, {
+                           404: "There is no such stream (or another owner's).",
+                           409: "The stream no longer takes frame-sets "
+                                "(`stream-not-receiving`).",
+                           413: "Larger than any well-formed preview (`body-too-large`).",
+                           422: "Not a well-formed preview.bin (`invalid-preview`)."})})
+async def put_preview(stream_id: StreamId, request: Request, gateway: GatewayDep,
+                      caller: CallerDep) -> Response:
+    """Relays the preview at once to the stream's viewers on every gateway; stores nothing.
+    A preview of an earlier frame than the last one relayed is dropped."""
+    stream = await run_in_threadpool(load_stream, gateway, caller, stream_id)
+    if stream.state != "receiving":
+        raise ProblemError(409, f"Stream {stream_id} is {stream.state}: it takes no more "
+                           "previews.", kind="stream-not-receiving")
+    data = await request.body()
+    try:
+        frame_index = check_preview(data)
+    except ValueError as exc:
+        raise ProblemError(422, f"preview.bin: {exc}", kind="invalid-preview") from None
+    publish_preview(request.app, stream_id, frame_index, data)
+    return Response(status_code=204)
 
 
 @router.websocket("/{stream_id}/preview", name="stream_preview")

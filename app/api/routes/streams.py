@@ -21,7 +21,7 @@ from app.api.deps import CallerDep, GatewayDep, SessionDep
 from app.api.pagination import PageLimit, PageOffset, fetch_page
 from app.api.routes.rigs import find_rig
 from app.core.framesets import check_frame_set
-from app.core.live_publish import publish_preview, publish_state
+from app.core.live_publish import publish_state
 from app.core.metrics import UPLOAD_BYTES_KEY
 from app.core.problems import BODY, READ, WRITE, ProblemError, located, problem_responses
 from app.core.security import Caller
@@ -51,8 +51,7 @@ _NO_STREAM = {404: "There is no such stream (or another owner's)."}
 _FRAME_SET_BODY: dict[str, Any] = {"requestBody": {
     "required": True,
     "description": "One frame-set: a zip of <camera>/depth/<index>.png (16-bit greyscale, "
-                   "every camera), optional <camera>/color/<index>.jpg (or .png) and optional "
-                   "preview.bin.",
+                   "every camera) and optional <camera>/color/<index>.jpg (or .png).",
     "content": {media: {"schema": {"type": "string", "format": "binary"}}
                 for media in ("application/zip", "application/octet-stream")}}}
 _FRAME_SET_PROBLEMS = {
@@ -157,14 +156,6 @@ async def _read_body(request: Request, limit: int) -> bytes:
     return b"".join(chunks)
 
 
-def _publish(request: Request, stream_id: str, index: int, preview: bytes) -> None:
-    try:
-        publish_preview(request.app, stream_id, index, preview)
-    except Exception:  # the frame-set is stored; a preview is a courtesy to viewers
-        log.warning("stream %s: preview of frame %d not published", stream_id, index,
-                    exc_info=True)
-
-
 @router.put("/{stream_id}/frames/{index}", status_code=201, response_model=FrameSetPublic,
             openapi_extra=_FRAME_SET_BODY, summary="Send one frame-set",
             responses={201: {"description": "Stored: the first time this index arrived."},
@@ -183,13 +174,11 @@ async def put_frame_set(stream_id: StreamId, index: FrameIndex, request: Request
     body = await _read_body(request, limit)
     sizes = {c["id"]: (c["depth_intrinsics"]["width"], c["depth_intrinsics"]["height"])
              for c in stream.cameras}
-    frame_set = await run_in_threadpool(check_frame_set, body, index, sizes, 2 * limit)
+    await run_in_threadpool(check_frame_set, body, index, sizes, 2 * limit)
     ack = await run_in_threadpool(store_frame, gateway, stream_id, index, timestamp_us, body)
     if ack.stored:
         # Counted by the metrics middleware only if the request ends accepted (2xx).
         setattr(request.state, UPLOAD_BYTES_KEY, len(body))
-        if frame_set.preview is not None:
-            _publish(request, stream_id, index, frame_set.preview)
     else:
         response.status_code = 200
     return FrameSetPublic(stream_id=stream_id, index=index, stored=ack.stored,
