@@ -11,9 +11,7 @@ from __future__ import annotations
 
 import json
 import re
-import threading
 from collections.abc import Callable, Generator, Iterator, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from contextlib import closing
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -31,6 +29,7 @@ from pipeline.capture import (
 )
 from pipeline.io.capture_io import StoredView, write_capture
 from pipeline.io.capture_json import meta_from_json
+from pipeline.io.capture_threads import write_capture_threaded
 from pipeline.io.k4a_calibration import color_from_depth, color_intrinsics, depth_intrinsics
 from pipeline.io.k4a_mkv import (
     DEPTH_UNIT_M,
@@ -52,7 +51,8 @@ class ImportConfig:
     """Frames of one frame-set lie within this of its earliest; None: half a frame period."""
     writer_threads: int = 2
     """Views written at once: deflate, CRC and file writes release the GIL, so two threads keep
-    two cores busy while one of them reads the recordings."""
+    two cores busy while the calling thread reads the recordings (with 1, that thread writes
+    too, one view after another)."""
     target: Target | None = None
     """The calibration target the colour images show, for a calibration recording."""
 
@@ -226,31 +226,12 @@ def recorded_view(camera: CameraInfo, index: int, frame: CameraFrame) -> StoredV
 
 def _write_views(out: Path, meta: CaptureMeta, views: Iterator[StoredView],
                  threads: int) -> None:
-    """write_capture with ``threads`` calls sharing one stream of views: each call writes the
-    same capture.json and the views it draws, so together they write what one call would,
-    encoding images side by side. The views are drawn under a lock (the stream is one
-    generator reading the recordings)."""
+    """write_capture, or with ``threads`` writer threads encoding while this thread reads the
+    recordings (see pipeline.io.capture_threads)."""
     if threads == 1:
         write_capture(out, meta, views)
         return
-    lock, stop = threading.Lock(), threading.Event()
-
-    def share() -> Iterator[StoredView]:
-        while not stop.is_set():
-            with lock:
-                view = next(views, None)
-            if view is None:
-                return
-            yield view
-
-    with ThreadPoolExecutor(threads) as pool:
-        calls = [pool.submit(write_capture, out, meta, share()) for _ in range(threads)]
-        try:
-            for call in calls:
-                call.result()
-        except BaseException:  # one call failed, or Ctrl-C: the others stop at their next view
-            stop.set()
-            raise
+    write_capture_threaded(out, meta, views, threads)
 
 
 def import_recordings(recordings: Recordings, out_dir: str | Path,

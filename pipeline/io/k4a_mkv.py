@@ -102,8 +102,9 @@ class CameraFrame:
     timestamp_us: int
     """The depth image's device timestamp."""
     size_px: tuple[int, int]
-    depth_be: bytes
-    """Depth as recorded: 16-bit big-endian millimetres, row-major."""
+    depth_be: bytes | memoryview
+    """Depth as recorded: 16-bit big-endian millimetres, row-major (read-only; a view of the
+    demuxed packet where read from a recording)."""
     color: ColorImage | None
 
     def depth_mm(self) -> NDArray[np.uint16]:
@@ -250,7 +251,8 @@ def _block_us(packet: Any) -> int:
     return int(packet.pts * base.numerator * 1_000_000 // base.denominator)
 
 
-def _check_payload(info: RecordingInfo, payload: bytes, kind: str, at_us: int) -> None:
+def _check_payload(info: RecordingInfo, payload: bytes | memoryview, kind: str,
+                   at_us: int) -> None:
     """ValueError where a frame's bytes cannot be the image its track declares."""
     if kind == "depth":
         expected = info.depth_size_px[0] * info.depth_size_px[1] * 2
@@ -278,7 +280,7 @@ class _ColorPairing:
         self.info = info
         self.tolerance_us = info.frame_period_us // 2
         self.slack_us = self.tolerance_us + info.frame_period_us
-        self.depth: deque[tuple[int, bytes]] = deque()
+        self.depth: deque[tuple[int, bytes | memoryview]] = deque()
         self.color: deque[ColorImage] = deque()
 
     def settled(self, newest_us: int, at_end: bool = False) -> Iterator[CameraFrame]:
@@ -323,12 +325,14 @@ def iter_camera_frames(info: RecordingInfo) -> Generator[CameraFrame, None, None
                     continue
                 block_us = _block_us(packet)
                 timestamp = info.start_offset_us + block_us
-                payload = bytes(packet)
                 if packet.stream.index == depth.index:
-                    _check_payload(info, payload, "depth", timestamp)
-                    pairing.depth.append((timestamp, payload))
+                    # The packet's own bytes, not a copy: depth is most of what is read.
+                    depth_be = memoryview(packet).toreadonly()
+                    _check_payload(info, depth_be, "depth", timestamp)
+                    pairing.depth.append((timestamp, depth_be))
                     last_depth_us = max(last_depth_us, block_us)
                 else:
+                    payload = bytes(packet)
                     _check_payload(info, payload, "colour", timestamp)
                     assert info.color_format is not None and info.color_size_px is not None
                     pairing.color.append(ColorImage(timestamp, info.color_format,
