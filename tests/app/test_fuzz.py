@@ -37,6 +37,8 @@ EXCLUDED_CHECKS: dict[str, list[Any]] = {
     "POST /api/v1/streams": [positive_data_acceptance],
     # any bytes are a valid `format: binary` body; a frame-set of the stream is rarely among them
     "PUT /api/v1/streams/{stream_id}/frames/{index}": [positive_data_acceptance],
+    # any bytes are a valid `format: binary` body; a well-formed preview.bin is rarely among them
+    "PUT /api/v1/streams/{stream_id}/preview": [positive_data_acceptance],
     # its 503 is the readiness report, not a failure: the fixture runs no stage worker, so no
     # worker consumes the cpu and gpu queues (tests/app/test_api.py checks that answer)
     "GET /readyz": [not_a_server_error],

@@ -10,8 +10,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
 import pytest
 
+from agent.preview import pack_preview
 from app.core.security import create_key
 from app.core.sharing import share_token
 from tests.app.conftest import Service, admin_auth
@@ -118,6 +120,10 @@ ROUTES: dict[tuple[str, str], Callable[[Owned], Request]] = {
                    {"content": frame_set(1)}),
     ("POST", "/api/v1/streams/{stream_id}/close"):
         lambda a: ("POST", f"/api/v1/streams/{a.stream_id}/close", {}),
+    ("PUT", "/api/v1/streams/{stream_id}/preview"):
+        lambda a: ("PUT", f"/api/v1/streams/{a.stream_id}/preview",
+                   {"content": pack_preview(1, time.time(), np.zeros((1, 3), np.float32),
+                                            np.zeros((1, 3), np.uint8))}),
 }
 # Routes that make something new: B makes its own, which A then cannot see (checked below).
 CREATING = {("POST", "/api/v1/captures"), ("POST", "/api/v1/rigs"), ("POST", "/api/v1/streams")}

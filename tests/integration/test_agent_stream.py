@@ -1,13 +1,17 @@
 """The edge agent against a real `volumesh serve`, both as separate processes: the gateway
 killed for seconds in the middle of a 300-frame stream, and the agent killed and started again.
 Either way every frame-set of the source arrives exactly once, in order, and the stream closes
-into a capture that holds them all."""
+into a capture that holds them all. And a viewer's socket gets the agent's previews while the
+frame-sets are captured."""
 
 from __future__ import annotations
 
+import json
 import signal
+import struct
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import httpx
@@ -29,6 +33,33 @@ def _serve(data_dir: Path, port: int, log: Path) -> Process:
     return serve
 
 
+@dataclass
+class Served:
+    """`volumesh serve` on its own data folder, and a client with its API key."""
+
+    data_dir: Path
+    port: int
+    serve: Process
+    key: str
+    client: httpx.Client
+
+    @property
+    def url(self) -> str:
+        return f"http://127.0.0.1:{self.port}"
+
+    def restart(self) -> None:
+        self.serve = _serve(self.data_dir, self.port, self.serve.log)
+
+
+def _start(tmp_path: Path) -> Served:
+    data_dir, port = tmp_path / "data", free_port()
+    serve = _serve(data_dir, port, tmp_path / "serve.log")
+    key = (data_dir / "api-key.txt").read_text().strip()
+    client = httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=30,
+                          headers={"Authorization": f"Bearer {key}"})
+    return Served(data_dir, port, serve, key, client)
+
+
 def _agent(url: str, key: str, capture: Path, spool: Path, log: Path) -> Process:
     return Process([sys.executable, "-m", "app", "agent", "--gateway", url, "--key", key,
                     "--source", f"capture:{capture}", "--spool", str(spool)],
@@ -47,7 +78,6 @@ def _only_stream(client: httpx.Client) -> str:
 
 def _check_capture(client: httpx.Client, stream_id: str, data_dir: Path) -> None:
     """The stream closed into a capture with every source frame once, timestamps in order."""
-    import json
     import zipfile
 
     stream = wait_for(lambda: (s := client.get(f"/api/v1/streams/{stream_id}").json())["state"]
@@ -67,36 +97,30 @@ def _check_capture(client: httpx.Client, stream_id: str, data_dir: Path) -> None
 
 def test_a_gateway_down_for_ten_seconds_loses_and_repeats_nothing(tmp_path: Path) -> None:
     capture = replay_capture(tmp_path, FRAMES, FPS)
-    data_dir, port = tmp_path / "data", free_port()
-    url = f"http://127.0.0.1:{port}"
-    serve = _serve(data_dir, port, tmp_path / "serve.log")
-    key = (data_dir / "api-key.txt").read_text().strip()
-    client = httpx.Client(base_url=url, timeout=30, headers={"Authorization": f"Bearer {key}"})
-    agent = _agent(url, key, capture, tmp_path / "spool", tmp_path / "agent.log")
+    served = _start(tmp_path)
+    client = served.client
+    agent = _agent(served.url, served.key, capture, tmp_path / "spool", tmp_path / "agent.log")
     try:
         stream_id = wait_for(lambda: _only_stream(client), 30, "the agent's stream")
         wait_for(lambda: _stored_frames(client, stream_id) >= 60, 30, "60 frame-sets")
-        serve.kill()
+        served.serve.kill()
         time.sleep(10.0)
         assert agent.alive, agent.tail()
-        serve = _serve(data_dir, port, tmp_path / "serve.log")
+        served.restart()
         assert agent.proc is not None
         assert agent.proc.wait(120) == 0, agent.tail()
-        _check_capture(client, stream_id, data_dir)
+        _check_capture(client, stream_id, served.data_dir)
         log = agent.log.read_text()
         assert "gateway away" in log and "gateway back" in log, log
     finally:
         agent.stop()
-        serve.stop(grace_s=5)
+        served.serve.stop(grace_s=5)
 
 
 def test_a_killed_agent_resumes_its_spool(tmp_path: Path) -> None:
     capture = replay_capture(tmp_path, FRAMES, FPS)
-    data_dir, port = tmp_path / "data", free_port()
-    url = f"http://127.0.0.1:{port}"
-    serve = _serve(data_dir, port, tmp_path / "serve.log")
-    key = (data_dir / "api-key.txt").read_text().strip()
-    client = httpx.Client(base_url=url, timeout=30, headers={"Authorization": f"Bearer {key}"})
+    served = _start(tmp_path)
+    client, url, key = served.client, served.url, served.key
     spool = tmp_path / "spool"
     try:
         agent = _agent(url, key, capture, spool, tmp_path / "agent-1.log")
@@ -109,26 +133,20 @@ def test_a_killed_agent_resumes_its_spool(tmp_path: Path) -> None:
         assert agent.proc is not None
         assert agent.proc.wait(120) == 0, agent.tail()
         assert _only_stream(client) == stream_id  # resumed, not a second stream
-        _check_capture(client, stream_id, data_dir)
+        _check_capture(client, stream_id, served.data_dir)
     finally:
-        serve.stop(grace_s=5)
+        served.serve.stop(grace_s=5)
 
 
 def test_a_viewer_sees_the_agents_previews_as_they_are_captured(tmp_path: Path) -> None:
     """Previews go beside the frame-sets: each reaches the viewer's socket soon after its
     frame-set was captured, in capture order."""
-    import json
-    import struct
-
     from websockets.sync.client import connect
 
     frames = 150  # 5 s at 30 fps: 25 previews at 5 Hz
     capture = replay_capture(tmp_path, frames, FPS)
-    data_dir, port = tmp_path / "data", free_port()
-    url = f"http://127.0.0.1:{port}"
-    serve = _serve(data_dir, port, tmp_path / "serve.log")
-    key = (data_dir / "api-key.txt").read_text().strip()
-    client = httpx.Client(base_url=url, timeout=30, headers={"Authorization": f"Bearer {key}"})
+    served = _start(tmp_path)
+    client, url, key = served.client, served.url, served.key
     agent = _agent(url, key, capture, tmp_path / "spool", tmp_path / "agent.log")
     previews: list[tuple[int, float]] = []  # frame index, age at arrival (s)
     try:
@@ -146,7 +164,7 @@ def test_a_viewer_sees_the_agents_previews_as_they_are_captured(tmp_path: Path) 
         assert agent.proc.wait(120) == 0, agent.tail()
     finally:
         agent.stop()
-        serve.stop(grace_s=5)
+        served.serve.stop(grace_s=5)
     indices = [index for index, _ in previews]
     assert len(previews) >= 10, previews  # of 25 made while the socket was open
     assert indices == sorted(set(indices))

@@ -72,6 +72,7 @@ def train_run(settings: RunSettings, meshes: NamedMeshes, out: WeightsStore,
                                           settings.seed, bar))
     network_stages = [s for s in settings.stages if s in NETWORK_STAGES]
     if network_stages:
+        check_refined(settings, out, init)
         runner = _network_runner(settings, train_set, val_set, out, bar, report)
         if init is not None:
             report["init"] = init.where
@@ -86,6 +87,19 @@ def train_run(settings: RunSettings, meshes: NamedMeshes, out: WeightsStore,
                                   network_weights(out, init), bar))
     out.write(REPORT, json.dumps(report, indent=1).encode())
     return report
+
+
+def check_refined(settings: RunSettings, out: WeightsStore, init: WeightsStore | None) -> None:
+    """Refuses, before any depth pair is made, a run whose LDM stages would refine a regressor
+    that neither this run trains nor --init or a resumed --out gives."""
+    refining = [s for s in settings.stages if s in ("vae", "ldm", "finetune")]
+    if not (settings.cfg.ldm_refines_regressor and refining):
+        return
+    if ("regressor" in settings.stages or init is not None
+            or (settings.resume and out.has("regressor.safetensors"))):
+        return
+    raise ValueError(f"--stages: {refining[0]} refines the regressor: run the regressor stage "
+                     "first (or give its weights in --out or --init)")
 
 
 def _network_runner(settings: RunSettings, train_set: NamedMeshes, val_set: NamedMeshes,

@@ -4,6 +4,7 @@ worker processes."""
 import json
 
 import numpy as np
+import pytest
 import torch
 from typer.testing import CliRunner
 
@@ -25,15 +26,21 @@ def test_pairs_do_not_depend_on_the_number_of_workers():
     assert one.source == two.source
 
 
-def _train_tiny(tmp_path, stages: str, *options: str):
+def _meshes(tmp_path):
+    """Two procedural meshes written as files: the folder."""
+    meshes = tmp_path / "meshes"
+    meshes.mkdir(exist_ok=True)
+    for name, mesh in procedural_meshes(np.random.default_rng(1), 2):
+        write_ply(meshes / f"{name}.ply", mesh)
+    return meshes
+
+
+def _train_tiny(tmp_path, stages: str, *options: str, out_name: str = "run"):
     """`volumesh train --config tiny` on two procedural meshes written as files: (result, out)."""
     from app.cli import app
 
-    meshes = tmp_path / "meshes"
-    meshes.mkdir()
-    for name, mesh in procedural_meshes(np.random.default_rng(1), 2):
-        write_ply(meshes / f"{name}.ply", mesh)
-    out = tmp_path / "run"
+    meshes = _meshes(tmp_path)
+    out = tmp_path / out_name
     result = CliRunner().invoke(app, [
         "train", "--out", str(out), "--config", "tiny", "--meshes", str(meshes),
         "--procedural", "1", "--workers", "2", "--stages", stages, *options,
@@ -41,11 +48,19 @@ def _train_tiny(tmp_path, stages: str, *options: str):
     return result, out
 
 
-def test_train_tiny_writes_weights_and_report(tmp_path):
-    result, out = _train_tiny(tmp_path, "regressor,vae")
+@pytest.fixture(scope="module")
+def ldm_run(tmp_path_factory):
+    """One tiny run of the regressor, VAE and LDM stages, read by several tests: its folder."""
+    tmp_path = tmp_path_factory.mktemp("ldm-run")
+    result, out = _train_tiny(tmp_path, "regressor,vae,ldm")
     assert result.exit_code == 0, result.output
-    assert (out / "regressor.safetensors").stat().st_size > 0
-    assert (out / "vae.safetensors").stat().st_size > 0
+    return out
+
+
+def test_train_tiny_writes_weights_and_report(ldm_run):
+    out = ldm_run
+    for name in ("regressor", "vae", "ldm"):
+        assert (out / f"{name}.safetensors").stat().st_size > 0
     report = json.loads((out / "training.json").read_text())
     assert report["regressor"]["steps"] == 3 and report["vae"]["steps"] == 3
     assert "procedural-0" in report["data"]["train"]
@@ -54,11 +69,10 @@ def test_train_tiny_writes_weights_and_report(tmp_path):
     assert "regressor" in report["vae"]["validation"]
 
 
-def test_the_ldm_a_run_writes_carries_the_regressor_it_refines(tmp_path):
+def test_the_ldm_a_run_writes_carries_the_regressor_it_refines(ldm_run):
     from pipeline.enhance.weights.loading import weights_from_bytes
 
-    result, out = _train_tiny(tmp_path, "regressor,vae,ldm")
-    assert result.exit_code == 0, result.output
+    out = ldm_run
     regressor, _ = weights_from_bytes((out / "regressor.safetensors").read_bytes())
     ldm, meta = weights_from_bytes((out / "ldm.safetensors").read_bytes())
     assert meta["refines_regressor"] == {"channels": [8, 16]}
@@ -66,10 +80,11 @@ def test_the_ldm_a_run_writes_carries_the_regressor_it_refines(tmp_path):
         assert torch.equal(ldm[f"refines.{key}"], value), key
 
 
-def test_ldm_stages_without_a_regressor_are_refused_by_name(tmp_path):
-    result, _ = _train_tiny(tmp_path, "vae")
+def test_ldm_stages_without_a_regressor_are_refused_by_name_before_any_work(tmp_path):
+    result, out = _train_tiny(tmp_path, "vae")
     assert result.exit_code != 0
     assert "refines the regressor" in str(result.exception)
+    assert not (out / "training.json").exists()  # refused before the pairs were made
 
 
 def test_a_meshes_folder_that_is_not_there_is_refused_before_any_work(tmp_path):
@@ -83,37 +98,25 @@ def test_a_meshes_folder_that_is_not_there_is_refused_before_any_work(tmp_path):
     assert not (tmp_path / "out").exists()
 
 
-def test_train_init_fine_tunes_given_weights_and_rejects_a_folder_without_them(tmp_path):
-    from app.cli import app
+def test_train_init_fine_tunes_given_weights_and_rejects_a_folder_without_them(tmp_path,
+                                                                              ldm_run):
     from pipeline.enhance.weights.loading import weights_from_bytes
 
-    meshes = tmp_path / "meshes"
-    meshes.mkdir()
-    for name, mesh in procedural_meshes(np.random.default_rng(1), 1):
-        write_ply(meshes / f"{name}.ply", mesh)
-    common = ["--config", "tiny", "--meshes", str(meshes), "--procedural", "1"]
-    first, second = tmp_path / "first", tmp_path / "second"
-    result = CliRunner().invoke(app, ["train", "--out", str(first), *common])
-    assert result.exit_code == 0, result.output
-    result = CliRunner().invoke(app, [
-        "train", "--out", str(second), *common, "--init", str(first),
-        "--stages", "regressor,finetune",
-    ])
+    result, second = _train_tiny(tmp_path, "regressor,finetune", "--init", str(ldm_run))
     assert result.exit_code == 0, result.output
     report = json.loads((second / "training.json").read_text())
-    assert report["init"] == str(first)
+    assert report["init"] == str(ldm_run)
     assert report["regressor"]["steps"] == 3 and report["finetune"]["steps"] == 3
     # Three more steps from the first run's weights: changed, but near them (a fresh
     # initialisation would be far).
     for name in ("regressor", "ldm"):
-        before, _ = weights_from_bytes((first / f"{name}.safetensors").read_bytes())
+        before, _ = weights_from_bytes((ldm_run / f"{name}.safetensors").read_bytes())
         after, _ = weights_from_bytes((second / f"{name}.safetensors").read_bytes())
         moved = [float((after[k] - before[k]).abs().max()) for k in before]
         assert 0 < max(moved) < 0.05, name
 
-    result = CliRunner().invoke(app, [
-        "train", "--out", str(tmp_path / "third"), *common, "--init", str(meshes),
-    ])
+    result, _ = _train_tiny(tmp_path, "regressor", "--init", str(_meshes(tmp_path)),
+                            out_name="third")
     assert result.exit_code != 0
     assert "--init" in str(result.exception)
 
