@@ -106,6 +106,8 @@ def test_a_gateway_down_for_ten_seconds_loses_and_repeats_nothing(tmp_path: Path
         served.serve.kill()
         time.sleep(10.0)
         assert agent.alive, agent.tail()
+        # Capture went on into the spool while nobody took the frame-sets.
+        assert len(list((tmp_path / "spool" / "frames").glob("*.zip"))) > 30
         served.restart()
         assert agent.proc is not None
         assert agent.proc.wait(120) == 0, agent.tail()
