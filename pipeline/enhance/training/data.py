@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -227,13 +227,35 @@ def _down_up(depth: NDArray, valid: NDArray) -> tuple[NDArray, NDArray]:
     return up.astype(np.float32), up_valid & valid
 
 
+NoiseKind = Literal["uniform", "gaussian", "laplace"]
+NOISE_KINDS: tuple[NoiseKind, ...] = ("uniform", "gaussian", "laplace")
+"""The noise models of `noisy_along_normals`: the paper's protocol's, and two as sensors make it
+(per-pixel Gaussian noise; heavy tails from flying pixels and multipath)."""
+
+
 def noisy_along_normals(
-    mesh: TriangleMesh, amplitude_m: float, rng: np.random.Generator
+    mesh: TriangleMesh, amplitude_m: float, rng: np.random.Generator,
+    kind: NoiseKind = "uniform",
 ) -> TriangleMesh:
-    """Every vertex moved along its normal by uniform noise in ±amplitude (the benchmark's)."""
+    """Every vertex moved along its normal by noise of `kind`: uniform in ±amplitude (the
+    benchmark's), or Gaussian or Laplace of the same standard deviation (amplitude / √3)."""
     n = vertex_normals(mesh.vertices_m, mesh.faces).astype(np.float64)
-    offset = rng.uniform(-amplitude_m, amplitude_m, (mesh.vertex_count, 1))
-    return mesh.with_vertices(mesh.vertices_m + n * offset)
+    return mesh.with_vertices(mesh.vertices_m + n * normal_offsets_m(
+        kind, amplitude_m, rng, mesh.vertex_count))
+
+
+def normal_offsets_m(kind: NoiseKind, amplitude_m: float, rng: np.random.Generator,
+                     count: int) -> NDArray[np.float64]:
+    """(count, 1) offsets along the normals, metres: `noisy_along_normals`'s noise. The uniform
+    draw is the one the protocol always made, so its seeded figures stay as they were."""
+    std_m = amplitude_m / np.sqrt(3.0)  # the standard deviation of uniform noise in ±amplitude
+    if kind == "uniform":
+        return rng.uniform(-amplitude_m, amplitude_m, (count, 1))
+    if kind == "gaussian":
+        return rng.normal(0.0, std_m, (count, 1))
+    if kind == "laplace":  # its scale b has standard deviation b√2
+        return rng.laplace(0.0, std_m / np.sqrt(2.0), (count, 1))
+    raise ValueError(f"noise kind {kind!r}: one of {', '.join(NOISE_KINDS)}")
 
 
 def _noise_amplitude(config: DataConfig, rng: np.random.Generator) -> float:

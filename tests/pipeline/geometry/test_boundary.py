@@ -15,22 +15,11 @@ from pipeline.enhance.training.data import noisy_along_normals
 from pipeline.geometry.boundary import across_boundary, boundary_half_edges, boundary_offset
 from pipeline.geometry.mesh import TriangleMesh
 from pipeline.geometry.smoothing import mean_operator
-from tests.pipeline.meshes import sphere
+from tests.pipeline.meshes import grid, sphere
 
 HOLD = TwicingBlendConfig(iterations=(10, 60), pilot_iterations=10, feature_rings=(0,))
 FREE = TwicingBlendConfig(iterations=(10, 60), pilot_iterations=10, feature_rings=(0,),
                           boundary_pilot_iterations=0)
-
-
-def grid(n: int, spacing_m: float = 0.01) -> TriangleMesh:
-    """An n x n vertex square in the z = 0 plane, its faces wound to face +z."""
-    x, y = np.meshgrid(np.arange(n) * spacing_m, np.arange(n) * spacing_m, indexing="ij")
-    v = np.column_stack([x.ravel(), y.ravel(), np.zeros(n * n)])
-    i = np.arange(n - 1)[:, None] * n + np.arange(n - 1)[None, :]
-    i = i.ravel()
-    faces = np.concatenate([np.column_stack([i, i + n, i + 1]),
-                            np.column_stack([i + 1, i + n, i + n + 1])]).astype(np.int32)
-    return TriangleMesh(v, faces)
 
 
 def open_sphere() -> TriangleMesh:
