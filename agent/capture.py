@@ -30,7 +30,7 @@ log = logging.getLogger(__name__)
 class CaptureSettings:
     fast: bool = False
     """Replay as fast as the spool takes it, not at the source's frame rate."""
-    preview_hz: float = 5.0
+    preview_hz: float = 10.0
     """Previews per second of device time; 0: none."""
     posed_cameras: tuple[CameraInfo, ...] | None = None
     """The source's cameras with their poses (in its order); None: no preview."""

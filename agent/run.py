@@ -38,7 +38,7 @@ class AgentConfig:
     source_options: SourceOptions = field(default_factory=SourceOptions)
     rig_id: str | None = None
     name: str | None = None
-    preview_hz: float = 5.0
+    preview_hz: float = 10.0
     senders: int = 4
     """Frame-sets in flight at once."""
     connect_deadline_s: float = 30.0

@@ -1,7 +1,7 @@
 """Live preview: from a frame-set's capture on the rig to a viewer's WebSocket.
 
 Usage: .venv/bin/python benchmarks/live_preview.py [--cameras 8] [--seconds 10]
-       [--preview-hz 5] [--workdir DIR]
+       [--preview-hz 10] [--workdir DIR]
 
 Replays the 8-camera capture benchmarks/ingest.py makes (640x576 depth, 1280x720 colour, 30
 fps; made here if --workdir lacks it) with `volumesh agent` at its frame rate against `volumesh
@@ -155,7 +155,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cameras", type=int, default=8)
     parser.add_argument("--seconds", type=int, default=10)
-    parser.add_argument("--preview-hz", type=float, default=5.0)
+    parser.add_argument("--preview-hz", type=float, default=10.0)
     parser.add_argument("--workdir", type=Path, default=None,
                         help="keep the recordings and the capture here (reused when present)")
     args = parser.parse_args()

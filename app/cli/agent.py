@@ -46,7 +46,7 @@ def agent(
     name: Annotated[str | None, typer.Option("--name", help="The stream's name.")] = None,
     preview_hz: Annotated[float, typer.Option(
         "--preview-hz", help="Live previews per second of capture (0: none); needs every "
-        "camera's pose.")] = 5.0,
+        "camera's pose.")] = 10.0,
 ) -> None:
     """Captures frame-sets from SOURCE into a spool on disk and sends them to the gateway as a
     stream; at the source's end closes the stream and prints the capture it became.
