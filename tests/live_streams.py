@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import contextlib
 import io
-import socket
 import threading
 import time
 import zipfile
@@ -17,6 +16,7 @@ import numpy as np
 from agent.preview import encode_preview, pack_preview
 from pipeline.capture import CameraInfo
 from pipeline.io.png16 import encode_png16
+from tests.integration.services import free_port
 from tests.pipeline.sphere_scene import ring_cameras, sphere_depth
 
 WIDTH, HEIGHT = 64, 48
@@ -67,12 +67,6 @@ def frame_set(index: int) -> bytes:
             units = np.round(depth_m / DEPTH_SCALE).astype(np.uint16)
             archive.writestr(f"{camera_id}/depth/{index:06d}.png", encode_png16(units))
     return buffer.getvalue()
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 @contextlib.contextmanager

@@ -15,8 +15,8 @@ from app.core.live import PreviewHub
 from app.core.live_redis import relay_for
 from app.core.security import create_key
 from app.main import create_app
-from tests.integration.services import Redis
-from tests.live_streams import free_port, served, sphere_preview, stream_body
+from tests.integration.services import Redis, free_port
+from tests.live_streams import served, sphere_preview, stream_body
 from workers.settings import Settings
 
 pytestmark = pytest.mark.timeout(120)
