@@ -52,6 +52,9 @@ def train(
         "--loss-mask", min=0.001, max=1.0, help="Leave pixels where an input is further than "
         "this (normalised depth) from the clean render out of the losses (default: the "
         "config's, 0.05; 0.02 leaves out all that sees another surface).")] = None,
+    noise: Annotated[str | None, typer.Option(
+        "--noise", help="Comma-separated noise models the noisy meshes draw from: uniform, "
+        "gaussian, laplace (default: all three).")] = None,
     init: Annotated[Path | None, typer.Option(
         "--init", help="Fine-tune the weights in this folder (e.g. the shipped ones): the "
         "regressor stage starts from its regressor.safetensors, the finetune stage from its "
@@ -79,7 +82,7 @@ def train(
     from pipeline.enhance.training.plan import run_config, wanted_stages
     from pipeline.enhance.training.run import RunSettings, train_run
 
-    cfg = run_config(config, budget_scale, poses, mix, minutes, lr, loss_mask)
+    cfg = run_config(config, budget_scale, poses, mix, minutes, lr, loss_mask, noise)
     init_store = None if init is None else FolderStore(init)
     wanted = wanted_stages(stages, init_store)
     if not meshes.is_dir():  # an empty folder is fine: procedural shapes alone

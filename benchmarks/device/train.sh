@@ -9,9 +9,10 @@
 # shipped ones (validation meshes only; never the bunny).
 #
 # Sized to one device call (10 minutes at most): SCALE multiplies every stage's steps and
-# MINUTES caps each network stage. On an H100 the large config's pairs take about 2 minutes
-# with 14 workers and its regressor / finetune stages 3.0 / 5.8 minutes at SCALE 1, so SCALE
-# 0.4 leaves time for the gains and the validation. Here, `LOCAL=1 CONFIG=small SCALE=0.002
+# MINUTES caps each network stage; STAGES and NOISE (`--noise`) set the stages trained and the
+# noise models drawn (default: all three). On an H100 the large config's pairs take about 2
+# minutes with 14 workers and its regressor / finetune stages 3.0 / 5.8 minutes at SCALE 1, so
+# SCALE 0.4 leaves time for the gains and the validation. Here, `LOCAL=1 CONFIG=small SCALE=0.002
 # POSES=1 PROCEDURAL=1 WORKERS=2 DEVICE=cpu` checks the command line in a few minutes.
 set -uo pipefail
 if [ -z "${LOCAL:-}" ]; then
@@ -26,10 +27,11 @@ work=$(mktemp -d)
 poses=()
 [ -n "${POSES:-}" ] && poses=(--poses "$POSES")
 $python -c "from app.cli import main; main()" train --config "${CONFIG:-large}" \
-  --init pipeline/enhance/weights --stages regressor,finetune,gain --mix mesh \
+  --init pipeline/enhance/weights --stages "${STAGES:-regressor,finetune,gain}" --mix mesh \
   --loss-mask 0.02 --lr 2e-4 --procedural "${PROCEDURAL:-12}" --workers "${WORKERS:-14}" \
   --seed "${SEED:-61}" --budget-scale "${SCALE:-0.4}" --minutes "${MINUTES:-2.5}" \
-  "${poses[@]}" --meshes "${MESHES:-.meshes}" --device "${DEVICE:-cuda}" --out "$work" \
+  --noise "${NOISE:-uniform,gaussian,laplace}" "${poses[@]}" --meshes "${MESHES:-.meshes}" \
+  --device "${DEVICE:-cuda}" --out "$work" \
   2>&1 | tr '\r' '\n' | grep -v '^\s*$' | tail -60
 status=${PIPESTATUS[0]}
 mkdir -p "$out/train"

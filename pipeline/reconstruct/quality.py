@@ -144,18 +144,21 @@ def visible_mask(points: FloatArray, normals: FloatArray, cameras: list[CameraIn
 
 def compare(result: TriangleMesh, ground_truth: TriangleMesh, cameras: list[CameraInfo],
             config: MetricsConfig) -> dict[str, object]:
-    """Accuracy (result -> GT), completeness (GT -> result), coverage and normal error.
+    """Accuracy (result -> GT), completeness (GT -> result), coverage and normal error, and
+    the distances apart on the truth some camera observes and on the truth none observes
+    (`visible_mask`; a result sample counts where its closest truth point lies).
 
     Returns a JSON-ready dict; distances in metres, angles in degrees, shares in [0, 1].
     """
     gt_scene, result_scene = _Scene(ground_truth), _Scene(result)
     res_pts, res_normals = sample_surface(result, config.sample_count, config.seed)
-    signed, _, gt_normals = gt_scene.closest(res_pts)
+    signed, res_closest, gt_normals = gt_scene.closest(res_pts)
     cos = np.clip(np.sum(res_normals * gt_normals, axis=1), -1.0, 1.0)
     angle_deg = np.degrees(np.arccos(cos))
     gt_pts, gt_face_normals = sample_surface(ground_truth, config.sample_count, config.seed + 1)
     reverse, _, _ = result_scene.closest(gt_pts)
     visible = visible_mask(gt_pts, gt_face_normals, cameras, gt_scene, config)
+    res_visible = visible_mask(res_closest, gt_normals, cameras, gt_scene, config)
     covered = np.abs(reverse) <= config.coverage_threshold_m
     return {
         "result_to_gt": distance_figures(signed),
@@ -167,8 +170,24 @@ def compare(result: TriangleMesh, ground_truth: TriangleMesh, cameras: list[Came
         "normal_error_deg": {"mean": float(angle_deg.mean()),
                              "median": float(np.median(angle_deg)),
                              "p95": float(np.percentile(angle_deg, 95))},
+        "observed": _part_figures(signed, angle_deg, res_visible, reverse, visible),
+        "unobserved": _part_figures(signed, angle_deg, ~res_visible, reverse, ~visible),
         "samples": config.sample_count,
     }
+
+
+def _part_figures(signed_m: FloatArray, angle_deg: FloatArray, result_in: NDArray[np.bool_],
+                  reverse_m: FloatArray, truth_in: NDArray[np.bool_]) -> dict[str, float | None]:
+    """RMS distances both ways and the mean normal error of the samples in one part of the
+    truth, with the part's share of the truth's area (None: no sample lies there)."""
+    def rms(values: FloatArray) -> float | None:
+        return float(np.sqrt(np.mean(values**2))) if len(values) else None
+
+    return {"truth_share": float(truth_in.mean()),
+            "result_to_gt_rms_m": rms(signed_m[result_in]),
+            "gt_to_result_rms_m": rms(reverse_m[truth_in]),
+            "normal_error_mean_deg": float(angle_deg[result_in].mean()) if result_in.any()
+            else None}
 
 
 @dataclass(frozen=True)

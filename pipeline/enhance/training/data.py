@@ -19,6 +19,11 @@ from numpy.typing import NDArray
 from pipeline.enhance.render.views import canny_edges, make_views, render_depth
 from pipeline.geometry.mesh import TriangleMesh, vertex_normals
 
+NoiseKind = Literal["uniform", "gaussian", "laplace"]
+NOISE_KINDS: tuple[NoiseKind, ...] = ("uniform", "gaussian", "laplace")
+"""The noise models of `noisy_along_normals`: the paper's protocol's, and two as sensors make it
+(per-pixel Gaussian noise; heavy tails from flying pixels and multipath)."""
+
 
 @dataclass(frozen=True)
 class DataConfig:
@@ -45,6 +50,9 @@ class DataConfig:
     """Chance a view gets holes punched in it."""
     downup_probability: float = 0.2
     """Chance a view is 4x downsampled and bilinearly upsampled."""
+    noise_kinds: tuple[NoiseKind, ...] = ("uniform", "gaussian", "laplace")
+    """Noise models a pose's vertex noise is drawn from (`noisy_along_normals`), one per pose at
+    random: no stage may rest on one noise model."""
     color_probability: float = 0.5
     """Chance a pose's mesh gets synthetic colour (`synthetic_colors`), whose Canny edges the
     networks then read as at inference on a coloured mesh; the other poses have none (edges
@@ -227,12 +235,6 @@ def _down_up(depth: NDArray, valid: NDArray) -> tuple[NDArray, NDArray]:
     return up.astype(np.float32), up_valid & valid
 
 
-NoiseKind = Literal["uniform", "gaussian", "laplace"]
-NOISE_KINDS: tuple[NoiseKind, ...] = ("uniform", "gaussian", "laplace")
-"""The noise models of `noisy_along_normals`: the paper's protocol's, and two as sensors make it
-(per-pixel Gaussian noise; heavy tails from flying pixels and multipath)."""
-
-
 def noisy_along_normals(
     mesh: TriangleMesh, amplitude_m: float, rng: np.random.Generator,
     kind: NoiseKind = "uniform",
@@ -256,6 +258,14 @@ def normal_offsets_m(kind: NoiseKind, amplitude_m: float, rng: np.random.Generat
     if kind == "laplace":  # its scale b has standard deviation b√2
         return rng.laplace(0.0, std_m / np.sqrt(2.0), (count, 1))
     raise ValueError(f"noise kind {kind!r}: one of {', '.join(NOISE_KINDS)}")
+
+
+def noise_kind(kinds: Sequence[NoiseKind], rng: np.random.Generator) -> NoiseKind:
+    """One of `kinds` at random; a single kind without a draw, so its seeded data stay as
+    they were."""
+    if not kinds or any(k not in NOISE_KINDS for k in kinds):
+        raise ValueError(f"noise kinds {tuple(kinds)}: one or more of {', '.join(NOISE_KINDS)}")
+    return kinds[0] if len(kinds) == 1 else kinds[int(rng.integers(len(kinds)))]
 
 
 def _noise_amplitude(config: DataConfig, rng: np.random.Generator) -> float:
@@ -313,7 +323,8 @@ def pose_pairs(
     fine = remeshed.with_vertices(remeshed.vertices_m @ random_rotation(rng).T)
     if rng.random() < config.color_probability:
         fine = replace(fine, vertex_colors=synthetic_colors(fine, rng))
-    noisy = noisy_along_normals(fine, _noise_amplitude(config, rng), rng)
+    noisy = noisy_along_normals(fine, _noise_amplitude(config, rng), rng,
+                                noise_kind(config.noise_kinds, rng))
     forwards = rng.normal(size=(config.views_per_pose, 3))
     views = make_views(noisy.vertices_m, forwards, config.resolution)
     r_noisy = render_depth(noisy, views, with_color=True)

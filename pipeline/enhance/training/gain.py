@@ -16,7 +16,7 @@ from pipeline.enhance.enhancement import enhance_renders, update_inputs
 from pipeline.enhance.inference import vertex_gains
 from pipeline.enhance.metrics import signed_c2m
 from pipeline.enhance.models.vertex_gain import VertexGainConfig, VertexGainNet
-from pipeline.enhance.training.data import PROCEDURAL, unit_extent
+from pipeline.enhance.training.data import PROCEDURAL, NoiseKind, unit_extent
 from pipeline.enhance.training.row_fit import fit_rows
 from pipeline.enhance.training.selector import noisy_draw
 from pipeline.enhance.update.steps import UpdateConfig, ViewSteps, apply_view_steps, view_steps
@@ -42,7 +42,10 @@ class GainTrainConfig:
     edge_fraction: tuple[float, float] = (0.004, 0.007)
     """Range of the remesh's edge length, fraction of the mesh's largest extent."""
     noise_to_edge: tuple[float, float] = (0.3, 2.5)
-    """Range of the uniform noise amplitude along normals, in edge lengths."""
+    """Range of the noise amplitude along normals (the bound of uniform noise; the other kinds
+    have its standard deviation), in edge lengths."""
+    noise_kinds: tuple[NoiseKind, ...] = ("uniform", "gaussian", "laplace")
+    """Noise models each draw's noise is drawn from, one per draw at random."""
     views: int = 6
     resolution: int = 256
     vertices_per_draw: int = 40_000
@@ -83,7 +86,8 @@ class GainDraw:
 def gain_draw(name: str, unit: TriangleMesh, config: GainTrainConfig,
               weights: dict[str, bytes] | None, rng: np.random.Generator) -> GainDraw:
     """A noisy draw of the unit-extent mesh, enhanced by every method of `config`."""
-    truth, noisy = noisy_draw(unit, config.edge_fraction, config.noise_to_edge, rng)
+    truth, noisy = noisy_draw(unit, config.edge_fraction, config.noise_to_edge, rng,
+                              config.noise_kinds)
     enhance = EnhanceConfig(views=config.views, resolution=config.resolution, weights=weights)
     inputs = update_inputs(noisy, enhance, resolve_device(enhance.device).type)
     steps = {}

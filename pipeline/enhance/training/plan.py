@@ -12,6 +12,7 @@ import numpy as np
 from pipeline.enhance.training import config as tc
 from pipeline.enhance.training.data import (
     MIXES,
+    NOISE_KINDS,
     DataConfig,
     DepthPairs,
     concat_pairs,
@@ -59,8 +60,11 @@ class WeightsStore(Protocol):
 
 def run_config(config: str, budget_scale: float = 1.0, poses: int | None = None,
                mix: str = "full", minutes: float | None = None, lr: float | None = None,
-               loss_mask: float | None = None) -> tc.TrainConfig:
-    """The named configuration with the command line's edits; ValueError names a bad option."""
+               loss_mask: float | None = None, noise: str | None = None) -> tc.TrainConfig:
+    """The named configuration with the command line's edits; ValueError names a bad option.
+
+    `noise`: the comma-separated noise models every stage's noisy meshes draw from (None:
+    the config's, all of `NOISE_KINDS`)."""
     if config not in tc.CONFIGS:
         raise ValueError(f"--config: {config!r} is not one of {', '.join(tc.CONFIGS)}")
     if mix not in MIXES:
@@ -77,7 +81,21 @@ def run_config(config: str, budget_scale: float = 1.0, poses: int | None = None,
         cfg = tc.with_lr(cfg, lr)
     if loss_mask is not None:
         cfg = replace(cfg, loss_mask_threshold_n=loss_mask)
+    if noise is not None:
+        cfg = with_noise_kinds(cfg, noise)
     return cfg
+
+
+def with_noise_kinds(cfg: tc.TrainConfig, noise: str) -> tc.TrainConfig:
+    """`cfg` with every stage's noise models set to the comma-separated `noise`."""
+    names = [k.strip() for k in noise.split(",") if k.strip()]
+    kinds = tuple(k for k in NOISE_KINDS for name in names if name == k)
+    if not names or len(kinds) != len(names):
+        raise ValueError(f"--noise: {noise!r} is not a comma-separated list of "
+                         f"{', '.join(NOISE_KINDS)}")
+    return replace(cfg, data=replace(cfg.data, noise_kinds=kinds),
+                   selector=replace(cfg.selector, noise_kinds=kinds),
+                   gain=replace(cfg.gain, noise_kinds=kinds))
 
 
 def wanted_stages(stages: str, init: WeightsStore | None) -> list[str]:

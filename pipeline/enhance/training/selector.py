@@ -14,7 +14,13 @@ from pipeline.enhance.inference import selector_blend
 from pipeline.enhance.metrics import signed_c2m
 from pipeline.enhance.models.twicing_selector import SelectorConfig, TwicingSelector
 from pipeline.enhance.presmooth.scale_selection import twicing_candidates
-from pipeline.enhance.training.data import isotropic, noisy_along_normals, unit_extent
+from pipeline.enhance.training.data import (
+    NoiseKind,
+    isotropic,
+    noise_kind,
+    noisy_along_normals,
+    unit_extent,
+)
 from pipeline.enhance.training.row_fit import fit_rows
 from pipeline.geometry.mesh import TriangleMesh
 from pipeline.geometry.smoothing import AdaptiveTwicingConfig, adaptive_twicing
@@ -30,8 +36,11 @@ class SelectorTrainConfig:
     edge_fraction: tuple[float, float] = (0.004, 0.007)
     """Range of the remesh's edge length, fraction of the mesh's largest extent."""
     noise_to_edge: tuple[float, float] = (0.3, 2.5)
-    """Range of the uniform noise amplitude along normals, in edge lengths (the benchmark's
-    protocol: 10 mm on 5 mm edges, 2)."""
+    """Range of the noise amplitude along normals (the bound of uniform noise; the other kinds
+    have its standard deviation), in edge lengths (the benchmark's protocol: 10 mm on 5 mm
+    edges, 2)."""
+    noise_kinds: tuple[NoiseKind, ...] = ("uniform", "gaussian", "laplace")
+    """Noise models each draw's noise is drawn from, one per draw at random."""
     vertices_per_draw: int = 40_000
     """Vertices of each draw kept for training (drawn at random; large meshes would dominate)."""
     steps: int = 3000
@@ -65,7 +74,8 @@ def selector_examples(
     for name, mesh in meshes:
         unit = unit_extent(mesh, name)
         for _ in range(config.draws_per_mesh):
-            truth, noisy = noisy_draw(unit, config.edge_fraction, config.noise_to_edge, rng)
+            truth, noisy = noisy_draw(unit, config.edge_fraction, config.noise_to_edge, rng,
+                                      config.noise_kinds)
             cand = twicing_candidates(noisy, config.model.blend)
             errors = np.stack([signed_c2m(v, truth) for v in cand.vertices_m], axis=1)
             keep = np.arange(noisy.vertex_count)
@@ -81,14 +91,15 @@ def selector_examples(
 
 def noisy_draw(
     unit: TriangleMesh, edge_fraction: tuple[float, float], noise_to_edge: tuple[float, float],
-    rng: np.random.Generator,
+    rng: np.random.Generator, kinds: tuple[NoiseKind, ...],
 ) -> tuple[TriangleMesh, TriangleMesh]:
     """(truth, noisy): the unit-extent mesh remeshed at an edge drawn from `edge_fraction`,
-    then noised along normals by an amplitude drawn from `noise_to_edge` edge lengths."""
+    then noised along normals by an amplitude drawn from `noise_to_edge` edge lengths, with
+    a noise model drawn from `kinds`."""
     edge = float(rng.uniform(*edge_fraction))
     truth = isotropic(unit, edge)
     amplitude = edge * float(rng.uniform(*noise_to_edge))
-    return truth, noisy_along_normals(truth, amplitude, rng)
+    return truth, noisy_along_normals(truth, amplitude, rng, noise_kind(kinds, rng))
 
 
 def blend_loss(weights: torch.Tensor, errors: torch.Tensor) -> torch.Tensor:
@@ -127,7 +138,7 @@ def validate_selector(
     out = {}
     for name, mesh in meshes:
         truth, noisy = noisy_draw(unit_extent(mesh, name), config.edge_fraction,
-                                  config.noise_to_edge, rng)
+                                  config.noise_to_edge, rng, config.noise_kinds)
         cand = twicing_candidates(noisy, config.model.blend)
         blended = selector_blend(model, cand)
         adaptive = adaptive_twicing(noisy, AdaptiveTwicingConfig(passes=config.model.passes))

@@ -59,3 +59,25 @@ def test_an_empty_mesh_is_a_value_error() -> None:
     flat = TriangleMesh(np.zeros((3, 3)), np.array([[0, 1, 2]], np.int32))
     with pytest.raises(ValueError, match="mesh"):
         sample_surface(flat, 10)
+
+
+def test_the_unobserved_part_is_measured_apart() -> None:
+    gt = sphere_mesh()
+    cam = ring_cameras(1, 64, 48)[0]
+    assert cam.world_from_depth is not None
+    towards = cam.world_from_depth[:3, 3] - CENTRE
+    towards /= np.linalg.norm(towards)
+    # The far side pushed out by 1 cm: wrong only where the camera cannot look.
+    radial = gt.vertices_m - CENTRE
+    far = (radial @ towards < -0.3 * RADIUS)[:, None]
+    bulged = TriangleMesh(np.where(far, CENTRE + radial * (1 + 0.01 / RADIUS), gt.vertices_m),
+                          gt.faces)
+    figures = compare(bulged, gt, [cam], CONFIG)
+    observed, unobserved = figures["observed"], figures["unobserved"]
+    assert observed["truth_share"] + unobserved["truth_share"] == pytest.approx(1.0)
+    assert observed["truth_share"] == pytest.approx(figures["visible_share"])
+    assert observed["result_to_gt_rms_m"] < 1e-3
+    assert observed["gt_to_result_rms_m"] < 1e-3
+    assert unobserved["result_to_gt_rms_m"] > 5e-3
+    assert unobserved["gt_to_result_rms_m"] > 5e-3
+

@@ -6,7 +6,16 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.enhance.training.data import NOISE_KINDS, noisy_along_normals, normal_offsets_m
+from pipeline.enhance.self_check import residuals_m
+from pipeline.enhance.training.data import (
+    NOISE_KINDS,
+    noise_kind,
+    noisy_along_normals,
+    normal_offsets_m,
+    unit_extent,
+)
+from pipeline.enhance.training.plan import run_config
+from pipeline.enhance.training.selector import noisy_draw
 from pipeline.geometry.mesh import vertex_normals
 from tests.pipeline.meshes import sphere
 
@@ -40,3 +49,31 @@ def test_the_kinds_are_seeded_and_an_unknown_kind_fails():
         assert np.array_equal(a, normal_offsets_m(kind, 0.01, np.random.default_rng(3), 50))
     with pytest.raises(ValueError, match="uniform, gaussian, laplace"):
         normal_offsets_m("cauchy", 0.01, np.random.default_rng(0), 5)  # type: ignore[arg-type]
+
+
+def test_one_kind_draws_nothing_and_several_draw_each():
+    rng = np.random.default_rng(5)
+    assert noise_kind(("laplace",), rng) == "laplace"
+    assert rng.random() == np.random.default_rng(5).random()  # the stream went untouched
+    drawn = {noise_kind(NOISE_KINDS, rng) for _ in range(60)}
+    assert drawn == set(NOISE_KINDS)
+    with pytest.raises(ValueError, match="noise kinds"):
+        noise_kind(("cauchy",), rng)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize(("kind", "heavy"), [("uniform", False), ("laplace", True)])
+def test_a_draw_has_the_noise_model_it_was_given(kind, heavy):
+    unit = unit_extent(sphere(0.5, 24), "sphere")
+    truth, noisy = noisy_draw(unit, (0.03, 0.03), (1.0, 1.0), np.random.default_rng(0), (kind,))
+    offsets = residuals_m(noisy, truth)
+    kurtosis = np.mean(offsets**4) / offsets.var() ** 2
+    assert (kurtosis > 4.5) if heavy else (kurtosis < 2.2)
+
+
+def test_the_noise_option_sets_every_stage_and_refuses_unknown_models():
+    cfg = run_config("tiny", noise="gaussian, laplace")
+    assert cfg.data.noise_kinds == cfg.selector.noise_kinds == cfg.gain.noise_kinds \
+        == ("gaussian", "laplace")
+    assert run_config("tiny").data.noise_kinds == NOISE_KINDS
+    with pytest.raises(ValueError, match="--noise"):
+        run_config("tiny", noise="gaussian,cauchy")
