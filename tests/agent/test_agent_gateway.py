@@ -23,6 +23,7 @@ from tests.integration.services import (
     base_env,
     create_key,
     sequence_capture_zip,
+    stop_all,
     wait_for,
     wait_worker_ready,
     worker,
@@ -52,8 +53,7 @@ def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Service]:
                           headers={"Authorization": f"Bearer {key}"})
     yield Service(gateway, env, key, folder / "data", client)
     client.close()
-    gateway.stop()
-    validate.stop()
+    stop_all([gateway, validate])
 
 
 def _agent(service: Service, log: Path, *args: str) -> Process:
@@ -91,25 +91,35 @@ def _check_capture(service: Service, agent_log: Path, frames: int, period_us: in
         assert np.abs(intervals_us - period_us).max() <= 1
 
 
+SYNTHETIC_FRAMES = 3
+"""Frame-sets of the synthetic rig's stream (two intervals to check): each takes the rig
+seconds to render (eight 640x576 cameras)."""
+
+
 def test_a_synthetic_stream_arrives_whole_and_becomes_a_capture(service: Service,
                                                                 tmp_path: Path) -> None:
     log, spool = tmp_path / "agent.log", tmp_path / "spool"
-    agent = _agent(service, log, "--source", "synthetic", "--frames", "12", "--fast",
-                   "--spool", str(spool))
+    agent = _agent(service, log, "--source", "synthetic", "--frames", str(SYNTHETIC_FRAMES),
+                   "--fast", "--spool", str(spool))
     assert _finished(agent, 300) == 0, agent.tail()
-    _check_capture(service, log, 12, 33_333)
+    _check_capture(service, log, SYNTHETIC_FRAMES, 33_333)
     assert not (spool / "state.json").exists() and not list((spool / "frames").iterdir())
 
 
-def _replay(service: Service, tmp_path: Path) -> tuple[list[str], Path]:
-    capture = sequence_capture_zip(tmp_path, frames=40, fps=10.0)
+@pytest.fixture(scope="module")
+def replayed(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The 40-frame capture the replay tests' agents read (made once: seconds to render)."""
+    return sequence_capture_zip(tmp_path_factory.mktemp("replayed"), frames=40, fps=10.0)
+
+
+def _replay(replayed: Path, tmp_path: Path) -> tuple[list[str], Path]:
     spool = tmp_path / "spool"
-    return ["--source", f"capture:{capture}", "--spool", str(spool)], spool
+    return ["--source", f"capture:{replayed}", "--spool", str(spool)], spool
 
 
 def test_an_agent_stopped_mid_stream_resumes_the_same_stream_from_its_spool(
-        service: Service, tmp_path: Path) -> None:
-    args, spool = _replay(service, tmp_path)
+        service: Service, replayed: Path, tmp_path: Path) -> None:
+    args, spool = _replay(replayed, tmp_path)
     first = _agent(service, tmp_path / "first.log", *args)
     wait_for(lambda: (spool / "state.json").is_file() and json.loads(
         (spool / "state.json").read_text())["next_index"] >= 10, 60, "10 frame-sets spooled")
@@ -126,8 +136,8 @@ def test_an_agent_stopped_mid_stream_resumes_the_same_stream_from_its_spool(
 
 
 def test_frame_sets_the_gateway_refuses_are_set_aside_with_a_line_each(
-        service: Service, tmp_path: Path) -> None:
-    args, spool = _replay(service, tmp_path)
+        service: Service, replayed: Path, tmp_path: Path) -> None:
+    args, spool = _replay(replayed, tmp_path)
     agent = _agent(service, tmp_path / "agent.log", *args)
     wait_for(lambda: (spool / "state.json").is_file(), 60, "the stream")
     stream_id = _stream_id(spool)

@@ -106,6 +106,21 @@ class Process:
         return "\n".join(self.log.read_text(errors="replace").splitlines()[-lines:])
 
 
+def stop_all(procs: list[Process], grace_s: float = 1.0) -> None:
+    """:meth:`Process.stop` of them all at once: SIGTERM to each, one grace, SIGKILL to all."""
+    for proc in procs:
+        if proc.alive and proc.proc is not None:
+            with contextlib.suppress(ProcessLookupError):
+                proc.proc.send_signal(signal.SIGTERM)
+    deadline = time.monotonic() + grace_s
+    for proc in procs:
+        if proc.proc is not None:
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                proc.proc.wait(max(0.0, deadline - time.monotonic()))
+    for proc in procs:
+        proc.kill(signal.SIGKILL)
+
+
 class Redis(Process):
     """redis-server on a free port, with an append-only file so a restart keeps the queues."""
 
@@ -254,6 +269,22 @@ def upload_capture(client: Any, auth: dict[str, str], zip_path: Path) -> str:
     return str(response.json()["id"])
 
 
+_MADE: dict[str, Path] = {}
+"""Zips this test process made, by name (it says their parameters): a later call for the same
+one copies it, as the synthesis takes seconds."""
+
+
+def _copy_made(name: str, zip_path: Path) -> bool:
+    """Copies the zip of ``name`` made before to ``zip_path``; whether there was one."""
+    made = _MADE.get(name)
+    if made is None or not made.is_file():
+        return False
+    with tempfile.TemporaryDirectory(dir=zip_path.parent) as tmp:
+        shutil.copyfile(made, Path(tmp) / zip_path.name)
+        (Path(tmp) / zip_path.name).replace(zip_path)
+    return True
+
+
 def make_capture_zip(folder: Path, cameras: int = 4, width: int = 160, height: int = 144,
                      frames: int = 1, seed: int = 0) -> Path:
     """A synthetic capture of the built-in subject, packed as a zip (cached per parameters)."""
@@ -263,7 +294,7 @@ def make_capture_zip(folder: Path, cameras: int = 4, width: int = 160, height: i
 
     name = f"capture-{cameras}x{width}x{height}x{frames}-{seed}"
     zip_path = folder / f"{name}.zip"
-    if zip_path.is_file():
+    if zip_path.is_file() or _copy_made(name, zip_path):
         return zip_path
     config = SynthConfig(camera_count=cameras, frame_count=frames, seed=seed,
                          rig=RigConfig(width=width, height=height))
@@ -272,6 +303,7 @@ def make_capture_zip(folder: Path, cameras: int = 4, width: int = 160, height: i
         write_capture(Path(tmp) / name, meta, views)
         zip_capture(Path(tmp) / name, Path(tmp) / zip_path.name)
         (Path(tmp) / zip_path.name).replace(zip_path)
+    _MADE[name] = zip_path
     return zip_path
 
 
@@ -286,7 +318,7 @@ def make_calibration_zip(folder: Path, cameras: int = 4, width: int = 160, heigh
 
     name = f"calibration-{cameras}x{width}x{height}x{frames}-{seed}"
     zip_path = folder / f"{name}.zip"
-    if zip_path.is_file():
+    if zip_path.is_file() or _copy_made(name, zip_path):
         return zip_path
     scene = SynthConfig(camera_count=cameras, seed=seed, rig=RigConfig(width=width, height=height))
     rig = true_cameras(place_subject(sample_mesh(), scene), scene)
@@ -296,6 +328,7 @@ def make_calibration_zip(folder: Path, cameras: int = 4, width: int = 160, heigh
         write_capture(Path(tmp) / name, meta, list(views))
         zip_capture(Path(tmp) / name, Path(tmp) / zip_path.name)
         (Path(tmp) / zip_path.name).replace(zip_path)
+    _MADE[name] = zip_path
     return zip_path
 
 
@@ -312,6 +345,10 @@ def sequence_capture_zip(folder: Path, frames: int = 4, bad_frame: int | None = 
     from pipeline.synth.rig import RigConfig
     from pipeline.synth.scene import SynthConfig, sample_mesh
 
+    zip_path = folder / f"sequence-{frames}-{bad_frame}.zip"
+    made = f"{zip_path.stem}@{fps:g}"
+    if _copy_made(made, zip_path):
+        return zip_path
     config = SynthConfig(camera_count=4, frame_count=frames, rig=RigConfig(width=160, height=144))
     meta, views, _ = synthesize_sequence(sample_mesh(), config,
                                          MotionConfig(kind="rigid", frame_rate_hz=fps))
@@ -319,8 +356,9 @@ def sequence_capture_zip(folder: Path, frames: int = 4, bad_frame: int | None = 
             for v in views]
     with tempfile.TemporaryDirectory(dir=folder) as tmp:
         write_capture(Path(tmp) / "capture", meta, kept)
-        zip_capture(Path(tmp) / "capture", folder / f"sequence-{frames}-{bad_frame}.zip")
-    return folder / f"sequence-{frames}-{bad_frame}.zip"
+        zip_capture(Path(tmp) / "capture", zip_path)
+    _MADE[made] = zip_path
+    return zip_path
 
 
 def wait_job(client: httpx.Client, job_id: str, states: set[str], timeout_s: float,

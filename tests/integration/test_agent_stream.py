@@ -11,6 +11,7 @@ import signal
 import struct
 import sys
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -60,6 +61,20 @@ def _start(tmp_path: Path) -> Served:
     return Served(data_dir, port, serve, key, client)
 
 
+@pytest.fixture(scope="module")
+def shared(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Served]:
+    """One `volumesh serve` for the tests that leave it running; each finds its own stream
+    among those of the tests before it (a capture of other bytes, so none is another's)."""
+    served = _start(tmp_path_factory.mktemp("served"))
+    try:
+        yield served
+    finally:
+        served.client.close()
+        # SIGKILL: its embedded workers get their SIGTERM from the kernel (PR_SET_PDEATHSIG),
+        # as on any kill; a graceful stop takes seconds and is test_embedded.py's to check.
+        served.serve.kill()
+
+
 def _agent(url: str, key: str, capture: Path, spool: Path, log: Path) -> Process:
     return Process([sys.executable, "-m", "app", "agent", "--gateway", url, "--key", key,
                     "--source", f"capture:{capture}", "--spool", str(spool)],
@@ -70,8 +85,13 @@ def _stored_frames(client: httpx.Client, stream_id: str) -> int:
     return int(client.get(f"/api/v1/streams/{stream_id}").json()["frames_received"])
 
 
-def _only_stream(client: httpx.Client) -> str:
-    items = client.get("/api/v1/streams").json()["items"]
+def _stream_ids(client: httpx.Client) -> set[str]:
+    return {str(item["id"]) for item in client.get("/api/v1/streams").json()["items"]}
+
+
+def _only_stream(client: httpx.Client, before: frozenset[str] = frozenset()) -> str:
+    """The one stream of the gateway beside those in ``before`` (a test's start)."""
+    items = [s for s in client.get("/api/v1/streams").json()["items"] if s["id"] not in before]
     assert len(items) == 1, items
     return str(items[0]["id"])
 
@@ -116,17 +136,19 @@ def test_a_gateway_down_for_ten_seconds_loses_and_repeats_nothing(tmp_path: Path
         assert "gateway away" in log and "gateway back" in log, log
     finally:
         agent.stop()
-        served.serve.stop(grace_s=5)
+        served.client.close()
+        served.serve.kill()  # as `shared` is stopped
 
 
-def test_a_killed_agent_resumes_its_spool(tmp_path: Path) -> None:
+def test_a_killed_agent_resumes_its_spool(shared: Served, tmp_path: Path) -> None:
     capture = replay_capture(tmp_path, FRAMES, FPS)
-    served = _start(tmp_path)
+    served = shared
     client, url, key = served.client, served.url, served.key
+    before = frozenset(_stream_ids(client))
     spool = tmp_path / "spool"
+    agent = _agent(url, key, capture, spool, tmp_path / "agent-1.log")
     try:
-        agent = _agent(url, key, capture, spool, tmp_path / "agent-1.log")
-        stream_id = wait_for(lambda: _only_stream(client), 30, "the agent's stream")
+        stream_id = wait_for(lambda: _only_stream(client, before), 30, "the agent's stream")
         wait_for(lambda: _stored_frames(client, stream_id) >= 100, 30, "100 frame-sets")
         agent.kill(signal.SIGKILL)
         stored_at_kill = _stored_frames(client, stream_id)
@@ -134,25 +156,27 @@ def test_a_killed_agent_resumes_its_spool(tmp_path: Path) -> None:
         agent = _agent(url, key, capture, spool, tmp_path / "agent-2.log")
         assert agent.proc is not None
         assert agent.proc.wait(120) == 0, agent.tail()
-        assert _only_stream(client) == stream_id  # resumed, not a second stream
+        assert _only_stream(client, before) == stream_id  # resumed, not a second stream
         _check_capture(client, stream_id, served.data_dir)
     finally:
-        served.serve.stop(grace_s=5)
+        agent.stop()
 
 
-def test_a_viewer_sees_the_agents_previews_as_they_are_captured(tmp_path: Path) -> None:
+def test_a_viewer_sees_the_agents_previews_as_they_are_captured(shared: Served,
+                                                                tmp_path: Path) -> None:
     """Previews go beside the frame-sets: each reaches the viewer's socket soon after its
     frame-set was captured, in capture order."""
     from websockets.sync.client import connect
 
     frames = 150  # 5 s at 30 fps: 50 previews at the default 10 Hz
     capture = replay_capture(tmp_path, frames, FPS)
-    served = _start(tmp_path)
+    served = shared
     client, url, key = served.client, served.url, served.key
+    before = frozenset(_stream_ids(client))
     agent = _agent(url, key, capture, tmp_path / "spool", tmp_path / "agent.log")
     previews: list[tuple[int, float]] = []  # frame index, age at arrival (s)
     try:
-        stream_id = wait_for(lambda: _only_stream(client), 30, "the agent's stream")
+        stream_id = wait_for(lambda: _only_stream(client, before), 30, "the agent's stream")
         socket_url = url.replace("http", "ws") + f"/api/v1/streams/{stream_id}/preview"
         with connect(socket_url, max_size=None, open_timeout=10) as socket:
             socket.send(json.dumps({"key": key}))
@@ -166,7 +190,6 @@ def test_a_viewer_sees_the_agents_previews_as_they_are_captured(tmp_path: Path) 
         assert agent.proc.wait(120) == 0, agent.tail()
     finally:
         agent.stop()
-        served.serve.stop(grace_s=5)
     indices = [index for index, _ in previews]
     assert len(previews) >= 10, previews  # of 50 made, most while the socket was open
     assert indices == sorted(set(indices))

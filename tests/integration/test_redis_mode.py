@@ -29,6 +29,7 @@ from tests.integration.services import (
     fresh_postgres_db,
     make_capture_zip,
     postgres_available,
+    stop_all,
     wait_for,
     wait_job,
     wait_worker_ready,
@@ -104,13 +105,16 @@ def cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cluster]:
             settings["database_url"] = database_url
         env = base_env(**settings)
         gateway = Gateway(env, folder / "gateway.log").start()
+        # The workers start while the key and the capture are made.
+        starting = [worker(env, folder / f"worker-{name}.log", name=name).start()
+                    for name in ("w1", "w2")]
         key = create_key(env)
         client = httpx.Client(base_url=gateway.url, timeout=60,
                               headers={"Authorization": f"Bearer {key}"})
-        cluster = Cluster(folder, env, redis, gateway, [], client, key, "")
-        for name in ("w1", "w2"):
-            cluster.add_worker(name)
+        cluster = Cluster(folder, env, redis, gateway, starting, client, key, "")
         capture = make_capture_zip(folder, cameras=4, width=160, height=144)
+        for proc in starting:
+            wait_worker_ready(proc)
         response = client.post("/api/v1/captures", content=capture.read_bytes(),
                                headers={**cluster.auth, "Content-Type": "application/zip"})
         assert response.status_code == 201, response.text
@@ -119,8 +123,7 @@ def cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cluster]:
             yield cluster
         finally:
             client.close()
-            for proc in [*cluster.workers, gateway, moto, redis]:
-                proc.stop()
+            stop_all([*cluster.workers, gateway, moto, redis])
 
 
 def _database() -> Any:

@@ -26,6 +26,7 @@ from tests.integration.services import (
     check_draco_glb,
     gateway_client,
     sequence_capture_zip,
+    stop_all,
     upload_capture,
     wait_for,
     wait_job,
@@ -170,6 +171,4 @@ def test_a_sequence_runs_on_redis_with_two_workers(tmp_path: Path) -> None:
                                                        .json())
             assert [f.model_dump()["frame_index"] for f in manifest.frames] == [0, 1]
     finally:
-        for proc in procs:
-            proc.stop()
-        redis.stop()
+        stop_all([*procs, redis])

@@ -11,6 +11,7 @@ import pytest
 
 from pipeline.io.gltf_io import encode_glb
 from tests.web.harness import (
+    Browsers,
     LiveGateway,
     bumpy_torus,
     live_gateway,
@@ -37,6 +38,16 @@ def playwright() -> Iterator[Any]:
 
     with sync_playwright() as driver:
         yield driver
+
+
+@pytest.fixture(scope="session")
+def browsers(playwright: Any) -> Iterator[Browsers]:
+    """One Chromium per backend for the session; each page gets a fresh context of it."""
+    pool = Browsers(playwright)
+    try:
+        yield pool
+    finally:
+        pool.close()
 
 
 @pytest.fixture(scope="session")

@@ -122,13 +122,21 @@ class Child:
             time.sleep(0.1)
 
     def stop(self) -> None:
-        for sig in (signal.SIGTERM, signal.SIGKILL):
-            if self.proc.poll() is not None:
-                return
+        stop_children([self])
+
+
+def stop_children(children: list[Child], grace_s: float = 10.0) -> None:
+    """SIGTERM to every child's group at once, one grace for all, then SIGKILL to those
+    left."""
+    for sig in (signal.SIGTERM, signal.SIGKILL):
+        running = [c for c in children if c.proc.poll() is None]
+        for child in running:
             with contextlib.suppress(ProcessLookupError):
-                os.killpg(self.proc.pid, sig)
+                os.killpg(child.proc.pid, sig)
+        deadline = time.monotonic() + grace_s
+        for child in running:
             with contextlib.suppress(subprocess.TimeoutExpired):
-                self.proc.wait(10)
+                child.proc.wait(max(0.0, deadline - time.monotonic()))
 
 
 def free_port() -> int:
@@ -248,8 +256,8 @@ def live_gateway(data_dir: Path) -> Iterator[LiveGateway]:
                       "the worker")
         yield LiveGateway(data_dir, url, key, owner_of(row.id, None))
     finally:
-        gateway.stop()
-        work.stop()
+        # An idle Celery worker takes about 5 s to leave on SIGTERM; nothing waits for it.
+        stop_children([gateway, work], grace_s=1.0)
 
 
 # --- the browser -----------------------------------------------------------------------------
@@ -266,18 +274,53 @@ class ConsoleLog:
                 and not any(url.startswith(a) for a in allowed_urls if url)]
 
 
+class Browsers:
+    """One headless Chromium per backend, each started at its first page and kept: a page of
+    :func:`viewer_page` then costs a fresh context (an empty profile of its own, no cookies or
+    storage shared) rather than a whole browser start."""
+
+    def __init__(self, playwright: Any) -> None:
+        self.playwright = playwright
+        self.running: dict[str, Any] = {}
+
+    def browser(self, backend: str) -> Any:
+        if backend not in self.running:
+            self.running[backend] = self.playwright.chromium.launch(
+                executable_path=str(require_chromium()), headless=True,
+                args=_flags(backend))
+        return self.running[backend]
+
+    def close(self) -> None:
+        for browser in self.running.values():
+            with contextlib.suppress(Exception):
+                browser.close()
+        self.running.clear()
+
+
+def _flags(backend: str) -> list[str]:
+    if backend not in ("webgpu", "webgl2"):
+        raise ValueError(f"backend must be webgpu or webgl2, got {backend!r}")
+    return BASE_FLAGS + (WEBGPU_FLAGS if backend == "webgpu" else [])
+
+
 @contextlib.contextmanager
 def viewer_page(playwright: Any, backend: str, api_key: str | None = None
                 ) -> Iterator[tuple[Any, ConsoleLog]]:
     """A page in a fresh Chromium profile; `backend` 'webgpu' adds the GPU flags, 'webgl2' none.
-    With `api_key` the viewer holds that key (as if saved under "API key") from the start."""
-    if backend not in ("webgpu", "webgl2"):
-        raise ValueError(f"backend must be webgpu or webgl2, got {backend!r}")
-    chromium = require_chromium()
-    args = BASE_FLAGS + (WEBGPU_FLAGS if backend == "webgpu" else [])
-    with tempfile.TemporaryDirectory(prefix="volumesh-chromium-") as profile:
-        context = playwright.chromium.launch_persistent_context(
-            profile, executable_path=str(chromium), headless=True, args=args, viewport=VIEWPORT)
+    With `api_key` the viewer holds that key (as if saved under "API key") from the start.
+
+    `playwright` is Playwright's driver (a browser started for the page alone) or a
+    :class:`Browsers` (a new context of its browser for the backend)."""
+    args = _flags(backend)
+    with contextlib.ExitStack() as stack:
+        if isinstance(playwright, Browsers):
+            context = playwright.browser(backend).new_context(viewport=VIEWPORT)
+        else:
+            profile = stack.enter_context(
+                tempfile.TemporaryDirectory(prefix="volumesh-chromium-"))
+            context = playwright.chromium.launch_persistent_context(
+                profile, executable_path=str(require_chromium()), headless=True, args=args,
+                viewport=VIEWPORT)
         try:
             if api_key is not None:
                 context.add_init_script(f"localStorage.setItem('volumesh.apiKey', "

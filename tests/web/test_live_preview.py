@@ -7,7 +7,6 @@ from __future__ import annotations
 import threading
 import time
 from pathlib import Path
-from typing import Any
 
 import httpx
 import numpy as np
@@ -15,7 +14,14 @@ import pytest
 
 from agent.preview import pack_preview
 from tests.live_streams import frame_set, stream_body
-from tests.web.harness import LiveGateway, foreground, viewer_page, viewport_pixels, wait_state
+from tests.web.harness import (
+    Browsers,
+    LiveGateway,
+    foreground,
+    viewer_page,
+    viewport_pixels,
+    wait_state,
+)
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -61,14 +67,14 @@ class Sender(threading.Thread):
                 self.stop.wait(max(0.0, 0.2 - (time.monotonic() - started)))
 
 
-def test_live_preview_updates_and_shows_the_close(playwright: Any, gateway: LiveGateway,
+def test_live_preview_updates_and_shows_the_close(browsers: Browsers, gateway: LiveGateway,
                                                   artifacts: Path) -> None:
     created = httpx.post(f"{gateway.url}/api/v1/streams", json=stream_body("web live"),
                          headers=gateway.auth)
     assert created.status_code == 201, created.text
     stream_id = created.json()["id"]
     sender = Sender(gateway, stream_id)
-    with viewer_page(playwright, "webgpu", gateway.key) as (page, log):
+    with viewer_page(browsers, "webgpu", gateway.key) as (page, log):
         # The panel lists the key's receiving streams, each linking to its live view.
         page.goto(gateway.url + "/")
         assert wait_state(page) == "ready", page.inner_text("#message")
@@ -116,12 +122,17 @@ def test_live_preview_updates_and_shows_the_close(playwright: Any, gateway: Live
         assert [(job["capture_id"], job["frames_total"]) for job in jobs] == [
             (capture_id, sender.sent)], jobs
         assert log.errors() == []
+    # Queued was all this test asks of the job: cancelled, its frames leave the session's one
+    # worker to the jobs of the tests after this one.
+    cancelled = httpx.delete(f"{gateway.url}/api/v1/jobs/{jobs[0]['id']}", headers=gateway.auth)
+    assert cancelled.status_code == 200, cancelled.text
 
 
-def test_live_preview_without_a_key_says_so(playwright: Any, gateway: LiveGateway) -> None:
+def test_live_preview_without_a_key_says_so(browsers: Browsers, gateway: LiveGateway
+                                            ) -> None:
     created = httpx.post(f"{gateway.url}/api/v1/streams", json=stream_body("no key"),
                          headers=gateway.auth)
-    with viewer_page(playwright, "webgl2") as (page, log):
+    with viewer_page(browsers, "webgl2") as (page, log):
         page.goto(f"{gateway.url}/?live={created.json()['id']}")
         page.wait_for_function("window.viewerStats.live?.closed === 'unauthorized'",
                                timeout=20_000)

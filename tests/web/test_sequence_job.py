@@ -11,7 +11,7 @@ import httpx
 import pytest
 
 from tests.integration.services import FAST_JOB, sequence_capture_zip
-from tests.web.harness import LiveGateway, viewer_page, wait_state
+from tests.web.harness import Browsers, LiveGateway, viewer_page, wait_state
 
 pytestmark = pytest.mark.timeout(240)
 FRAMES = 3
@@ -35,28 +35,28 @@ def _play(page: Any) -> None:
                            timeout=30_000)  # every frame shown, and looped
 
 
-def test_the_served_sequence_plays_with_the_key(playwright: Any, gateway: LiveGateway,
+def test_the_served_sequence_plays_with_the_key(browsers: Browsers, gateway: LiveGateway,
                                                 sequence: dict[str, Any],
                                                 artifacts: Path) -> None:
     manifest = sequence["links"]["sequence"]
     assert sequence["links"]["viewer"] == f"/?sequence={manifest}"
-    with viewer_page(playwright, "webgl2", gateway.key) as (page, log):
+    with viewer_page(browsers, "webgl2", gateway.key) as (page, log):
         page.goto(f"{gateway.url}/?sequence={urllib.parse.quote(manifest, safe='/')}")
         _play(page)
         page.locator("#viewport").screenshot(path=str(artifacts / "sequence-job.png"))
         assert log.errors() == []
-    with viewer_page(playwright, "webgl2") as (page, log):  # no key: the API's own message
+    with viewer_page(browsers, "webgl2") as (page, log):  # no key: the API's own message
         page.goto(f"{gateway.url}/?sequence={urllib.parse.quote(manifest, safe='/')}")
         assert wait_state(page) == "error"
         assert "API key" in page.inner_text("#message")
 
 
-def test_a_share_link_plays_the_sequence_with_no_key(playwright: Any, gateway: LiveGateway,
+def test_a_share_link_plays_the_sequence_with_no_key(browsers: Browsers, gateway: LiveGateway,
                                                      sequence: dict[str, Any]) -> None:
     shared = httpx.post(f"{gateway.url}/api/v1/assets/{sequence['asset_id']}/share",
                         headers=gateway.auth, json={"expires_in_s": 600}, timeout=30)
     assert shared.status_code == 201, shared.text
-    with viewer_page(playwright, "webgl2") as (page, log):
+    with viewer_page(browsers, "webgl2") as (page, log):
         page.goto(gateway.url + shared.json()["viewer_url"])
         _play(page)
         assert log.errors() == []

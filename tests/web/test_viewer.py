@@ -16,6 +16,7 @@ from numpy.typing import NDArray
 
 from pipeline.io.gltf_io import encode_glb
 from tests.web.harness import (
+    Browsers,
     LiveGateway,
     bumpy_torus,
     foreground,
@@ -39,12 +40,12 @@ class Render:
 
 
 @pytest.fixture(scope="module")
-def renders(playwright: Any, gateway: LiveGateway, job: dict[str, Any], artifacts: Path
+def renders(browsers: Browsers, gateway: LiveGateway, job: dict[str, Any], artifacts: Path
             ) -> dict[str, Render]:
     """A real job's asset, rendered once per backend in a fresh browser."""
     found = {}
     for backend in ("webgpu", "webgl2"):
-        with viewer_page(playwright, backend, gateway.key) as (page, log):
+        with viewer_page(browsers, backend, gateway.key) as (page, log):
             page.goto(f"{gateway.url}/?asset={job['asset_id']}")
             state = wait_state(page)
             found[backend] = Render(
@@ -89,9 +90,9 @@ def _near(pixels: NDArray[np.int16], rgb: tuple[int, ...], tolerance: int) -> fl
     return float((np.abs(pixels - np.array(rgb)).max(axis=-1) <= tolerance).mean())
 
 
-def test_quality_views(playwright: Any, gateway: LiveGateway, torus_asset: str,
+def test_quality_views(browsers: Browsers, gateway: LiveGateway, torus_asset: str,
                        raw_torus_asset: str, artifacts: Path) -> None:
-    with viewer_page(playwright, "webgpu", gateway.key) as (page, log):
+    with viewer_page(browsers, "webgpu", gateway.key) as (page, log):
         page.goto(f"{gateway.url}/?asset={torus_asset}&compare={raw_torus_asset}")
         assert wait_state(page) == "ready", page.inner_text("#message")
         page.wait_for_function("!document.getElementById('compare-mode').disabled")
@@ -140,13 +141,13 @@ def test_quality_views(playwright: Any, gateway: LiveGateway, torus_asset: str,
         assert log.errors() == []
 
 
-def test_error_heat_map(playwright: Any, gateway: LiveGateway, artifacts: Path) -> None:
+def test_error_heat_map(browsers: Browsers, gateway: LiveGateway, artifacts: Path) -> None:
     mesh = bumpy_torus(nu=120, nv=80)
     x = mesh.vertices_m[:, 0]
     error_m = (0.004 * (x - x.min()) / np.ptp(x)).astype(np.float32)  # 0 -> 4 mm, left -> right
     glb = with_error_attribute(encode_glb(mesh, draco=None), error_m)
     asset = gateway.store_asset(glb, {"ground_truth": {"rms_m": 0.0021, "p95_m": 0.0038}})
-    with viewer_page(playwright, "webgpu", gateway.key) as (page, log):
+    with viewer_page(browsers, "webgpu", gateway.key) as (page, log):
         page.goto(f"{gateway.url}/?asset={asset}")
         assert wait_state(page) == "ready", page.inner_text("#message")
         page.select_option("#shading", "error")
@@ -164,7 +165,7 @@ def test_error_heat_map(playwright: Any, gateway: LiveGateway, artifacts: Path) 
         assert log.errors() == []
 
 
-def test_sequence_plays_and_scrubs(playwright: Any, gateway: LiveGateway, torus_asset: str,
+def test_sequence_plays_and_scrubs(browsers: Browsers, gateway: LiveGateway, torus_asset: str,
                                    raw_torus_asset: str, artifacts: Path) -> None:
     frames = [torus_asset, raw_torus_asset, torus_asset]
     manifest = {"version": 1, "fps": 12, "bounds": {"min": [-0.9, 0.6, -0.9],
@@ -175,7 +176,7 @@ def test_sequence_plays_and_scrubs(playwright: Any, gateway: LiveGateway, torus_
 
     SequenceManifest.model_validate(manifest)
     data_url = "data:application/json," + urllib.parse.quote(json.dumps(manifest))
-    with viewer_page(playwright, "webgpu", gateway.key) as (page, log):
+    with viewer_page(browsers, "webgpu", gateway.key) as (page, log):
         page.goto(f"{gateway.url}/?sequence={urllib.parse.quote(data_url, safe='')}")
         assert wait_state(page) == "ready", page.inner_text("#message")
         assert page.is_visible("#sequence-bar")
@@ -193,10 +194,10 @@ def test_sequence_plays_and_scrubs(playwright: Any, gateway: LiveGateway, torus_
         assert log.errors() == []
 
 
-def test_broken_zip_shows_the_api_message(playwright: Any, gateway: LiveGateway,
+def test_broken_zip_shows_the_api_message(browsers: Browsers, gateway: LiveGateway,
                                           artifacts: Path) -> None:
     broken = b"PK\x03\x04" + b"\x00" * 60 + b"this is no capture"
-    with viewer_page(playwright, "webgl2") as (page, log):
+    with viewer_page(browsers, "webgl2") as (page, log):
         page.goto(gateway.url + "/")
         assert wait_state(page) == "ready", page.inner_text("#message")
         page.fill("#api-key", gateway.key)
@@ -223,9 +224,9 @@ def test_broken_zip_shows_the_api_message(playwright: Any, gateway: LiveGateway,
         assert log.errors(allowed_urls=(f"{gateway.url}/api/v1/captures",)) == []
 
 
-def test_missing_asset_shows_the_api_message(playwright: Any, gateway: LiveGateway) -> None:
+def test_missing_asset_shows_the_api_message(browsers: Browsers, gateway: LiveGateway) -> None:
     missing = "0" * 32
-    with viewer_page(playwright, "webgl2", gateway.key) as (page, log):
+    with viewer_page(browsers, "webgl2", gateway.key) as (page, log):
         page.goto(f"{gateway.url}/?asset={missing}")
         assert wait_state(page) == "error"
         detail = httpx.get(f"{gateway.url}/api/v1/assets/{missing}/mesh.glb",
@@ -235,9 +236,9 @@ def test_missing_asset_shows_the_api_message(playwright: Any, gateway: LiveGatew
 
 
 def test_upload_through_the_page_runs_to_a_rendered_mesh(
-        playwright: Any, gateway: LiveGateway, tmp_path: Path, artifacts: Path) -> None:
+        browsers: Browsers, gateway: LiveGateway, tmp_path: Path, artifacts: Path) -> None:
     capture = synthetic_capture_zip(tmp_path, seed=1)  # not the `job` fixture's capture
-    with viewer_page(playwright, "webgpu") as (page, log):
+    with viewer_page(browsers, "webgpu") as (page, log):
         page.goto(gateway.url + "/")
         assert wait_state(page) == "ready", page.inner_text("#message")
         assert page.is_visible("#hint")
@@ -267,8 +268,8 @@ def test_upload_through_the_page_runs_to_a_rendered_mesh(
 
 
 def test_a_share_link_shows_the_asset_to_a_viewer_with_no_key(
-        playwright: Any, gateway: LiveGateway, torus_asset: str) -> None:
-    with viewer_page(playwright, "webgl2", gateway.key) as (page, log):
+        browsers: Browsers, gateway: LiveGateway, torus_asset: str) -> None:
+    with viewer_page(browsers, "webgl2", gateway.key) as (page, log):
         page.goto(f"{gateway.url}/?asset={torus_asset}")
         assert wait_state(page) == "ready", page.inner_text("#message")
         page.click("#share")
@@ -277,7 +278,7 @@ def test_a_share_link_shows_the_asset_to_a_viewer_with_no_key(
         owner_view = page.evaluate("window.viewerStats")
         assert log.errors() == []
     assert link.startswith(f"{gateway.url}/?asset={torus_asset}&share=")
-    with viewer_page(playwright, "webgl2") as (page, log):
+    with viewer_page(browsers, "webgl2") as (page, log):
         page.goto(link)
         assert wait_state(page) == "ready", page.inner_text("#message")
         shared_view = page.evaluate("window.viewerStats")

@@ -14,8 +14,10 @@ from workers.settings import Settings
 BUCKET = "volumesh-test"
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def moto(tmp_path_factory: pytest.TempPathFactory) -> Iterator[MotoS3]:
+    """One server for the session (its bucket is shared as by the tests of a module: each
+    test writes keys of its own)."""
     server = MotoS3(tmp_path_factory.mktemp("moto")).start()
     server.make_bucket(BUCKET)
     yield server

@@ -14,6 +14,7 @@ from tests.integration.services import (
     base_env,
     gateway_client,
     make_capture_zip,
+    stop_all,
     upload_capture,
     wait_job,
     wait_worker_ready,
@@ -53,8 +54,7 @@ def test_only_the_gpu_worker_enhances(tmp_path: Path) -> None:
                 assert job["state"] == "succeeded", job["error"]
                 jobs.append((job, client.get(job["links"]["report"]).json()))
     finally:
-        cpu.stop()
-        gpu.stop()
+        stop_all([cpu, gpu])
     for job, report in jobs:
         assert "enhance" in job["stages"] and report["enhance"]["applied"] is True
         assert report["stage_stats"]["enhance"]["mean_offset_m"] > 0

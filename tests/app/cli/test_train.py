@@ -35,24 +35,30 @@ def _meshes(tmp_path):
     return meshes
 
 
-def _train_tiny(tmp_path, stages: str, *options: str, out_name: str = "run"):
-    """`volumesh train --config tiny` on two procedural meshes written as files: (result, out)."""
+def _train_tiny(tmp_path, stages: str, *options: str, out_name: str = "run", workers: int = 1):
+    """`volumesh train --config tiny` on two procedural meshes written as files: (result, out).
+
+    One process makes the pairs unless `workers` says otherwise: each worker process is
+    spawned and imports torch afresh (seconds apiece on two cores), so only `ldm_run` (the run
+    through the CLI end to end) makes them in worker processes;
+    `test_pairs_do_not_depend_on_the_number_of_workers` shows the pairs are the same."""
     from app.cli import app
 
     meshes = _meshes(tmp_path)
     out = tmp_path / out_name
     result = CliRunner().invoke(app, [
         "train", "--out", str(out), "--config", "tiny", "--meshes", str(meshes),
-        "--procedural", "1", "--workers", "2", "--stages", stages, *options,
+        "--procedural", "1", "--workers", str(workers), "--stages", stages, *options,
     ])
     return result, out
 
 
 @pytest.fixture(scope="module")
 def ldm_run(tmp_path_factory):
-    """One tiny run of the regressor, VAE and LDM stages, read by several tests: its folder."""
+    """One tiny run of the regressor, VAE and LDM stages, its pairs made by two worker
+    processes, read by several tests: its folder."""
     tmp_path = tmp_path_factory.mktemp("ldm-run")
-    result, out = _train_tiny(tmp_path, "regressor,vae,ldm")
+    result, out = _train_tiny(tmp_path, "regressor,vae,ldm", workers=2)
     assert result.exit_code == 0, result.output
     return out
 
