@@ -23,7 +23,7 @@ else
   python=.venv/bin/python
 fi
 out=${OUT:-.}
-work=$(mktemp -d)
+work=${WORK:-$(mktemp -d)}
 poses=()
 [ -n "${POSES:-}" ] && poses=(--poses "$POSES")
 $python -c "from app.cli import main; main()" train --config "${CONFIG:-large}" \
