@@ -153,12 +153,16 @@ def test_the_shipped_model_card_gives_the_recipe_and_training_json_its_record():
     report = json.loads(weights.joinpath("training.json").read_text())
     card = weights.joinpath("MODEL_CARD.md").read_text()
     for command in ("volumesh train --config large --stages selector",
-                    "volumesh train --selector-ensemble", "volumesh train --average",
+                    "--stages gain --procedural 12", "volumesh train --average",
                     "--stages regressor,finetune,gain --mix mesh --loss-mask 0.02"):
         assert command in card, command
     assert "session" not in card
     assert report["averaged"]["finetune"]["validation"]["views"] == 24
     assert report["remasked"]["loss_mask_threshold_n"] == 0.02
+    for stage in ("selector", "gain"):
+        record = report["noise_mix"][stage]
+        kinds = record["noise_kinds"] if stage == "selector" else record["config"]["noise_kinds"]
+        assert kinds == ["uniform", "gaussian", "laplace"]
 
 
 def test_mesh_mix_drops_only_the_sensor_degradations_and_unknown_mixes_are_refused(tmp_path):
