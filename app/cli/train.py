@@ -162,7 +162,6 @@ def _source_meshes(folder: Path) -> list:
 def _write_average(start: Path, end: Path, share: float, out: Path) -> None:
     """`--average`: the averaged weights into the new folder `out`."""
     from app.cli.paths import output_folder
-    from pipeline.enhance.training.merge import averaged_weights
 
     for folder in (start, end):
         if not folder.is_dir():
@@ -170,6 +169,9 @@ def _write_average(start: Path, end: Path, share: float, out: Path) -> None:
     if out.exists():
         raise ValueError(f"--out: {out} exists (give a new folder)")
     output_folder(out.parent)
+    # torch loads with the merge: only once the arguments are known to be good.
+    from pipeline.enhance.training.merge import averaged_weights
+
     files = averaged_weights(FolderStore(start), FolderStore(end), share)
     out.mkdir()
     for name, data in files.items():
@@ -179,10 +181,11 @@ def _write_average(start: Path, end: Path, share: float, out: Path) -> None:
 def _write_selector_ensemble(members: list[Path], out: Path) -> None:
     """`--selector-ensemble`: the ensemble of the member files into `out`/selector.safetensors."""
     from app.cli.paths import output_folder
-    from pipeline.enhance.training.merge import selector_ensemble
 
     for path in members:
         if not path.is_file():
             raise ValueError(f"--selector-ensemble: {path} is not a file")
+    from pipeline.enhance.training.merge import selector_ensemble
+
     data = selector_ensemble([(str(p), p.read_bytes()) for p in members])
     FolderStore(output_folder(out)).write("selector.safetensors", data)
