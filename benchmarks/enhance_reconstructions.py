@@ -32,6 +32,7 @@ import os
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -117,20 +118,23 @@ def figures(result: TriangleMesh, truth: TriangleMesh, cameras: list, samples: i
 def oracle_smoothing(plain: TriangleMesh, truth: TriangleMesh) -> tuple[TriangleMesh, dict]:
     """The smoothing with the lowest RMS distance of its vertices to the truth, no smoothing
     included."""
-    candidates: list[tuple[dict, TriangleMesh]] = [({"smoother": "none"}, plain)]
-    for name, counts in SWEEPS.items():
-        smoother = getattr(smoothing, f"{name}_smooth")
-        candidates += [({"smoother": name, "iterations": k}, smoother(plain, k)) for k in counts]
-    for sigma, passes in NORMAL_FILTERING:
-        config = smoothing.NormalFilteringConfig(passes, sigma, 30)
-        candidates.append(({"smoother": "bilateral_normal_filtering", "range_sigma": sigma,
-                            "normal_passes": passes},
-                           smoothing.bilateral_normal_filtering(plain, config)))
+    def candidates() -> Iterator[tuple[dict, TriangleMesh]]:
+        yield {"smoother": "none"}, plain
+        for name, counts in SWEEPS.items():
+            smoother = getattr(smoothing, f"{name}_smooth")
+            for k in counts:
+                yield {"smoother": name, "iterations": k}, smoother(plain, k)
+        for sigma, passes in NORMAL_FILTERING:
+            config = smoothing.NormalFilteringConfig(passes, sigma, 30)
+            yield ({"smoother": "bilateral_normal_filtering", "range_sigma": sigma,
+                    "normal_passes": passes},
+                   smoothing.bilateral_normal_filtering(plain, config))
 
     def rms(mesh: TriangleMesh) -> float:
         return float(np.sqrt(np.mean(signed_distances_m(mesh.vertices_m, truth) ** 2)))
 
-    choice, best = min(candidates, key=lambda c: rms(c[1]))
+    _, choice, best = min(((rms(mesh), choice, mesh) for choice, mesh in candidates()),
+                          key=lambda c: c[0])
     return best, choice
 
 

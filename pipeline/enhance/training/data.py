@@ -50,7 +50,7 @@ class DataConfig:
     """Chance a view gets holes punched in it."""
     downup_probability: float = 0.2
     """Chance a view is 4x downsampled and bilinearly upsampled."""
-    noise_kinds: tuple[NoiseKind, ...] = ("uniform", "gaussian", "laplace")
+    noise_kinds: tuple[NoiseKind, ...] = NOISE_KINDS
     """Noise models a pose's vertex noise is drawn from (`noisy_along_normals`), one per pose at
     random: no stage may rest on one noise model."""
     color_probability: float = 0.5

@@ -16,7 +16,7 @@ from pipeline.enhance.enhancement import enhance_renders, update_inputs
 from pipeline.enhance.inference import vertex_gains
 from pipeline.enhance.metrics import signed_c2m
 from pipeline.enhance.models.vertex_gain import VertexGainConfig, VertexGainNet
-from pipeline.enhance.training.data import PROCEDURAL, NoiseKind, unit_extent
+from pipeline.enhance.training.data import NOISE_KINDS, PROCEDURAL, NoiseKind, unit_extent
 from pipeline.enhance.training.row_fit import fit_rows
 from pipeline.enhance.training.selector import noisy_draw
 from pipeline.enhance.update.steps import UpdateConfig, ViewSteps, apply_view_steps, view_steps
@@ -44,7 +44,7 @@ class GainTrainConfig:
     noise_to_edge: tuple[float, float] = (0.3, 2.5)
     """Range of the noise amplitude along normals (the bound of uniform noise; the other kinds
     have its standard deviation), in edge lengths."""
-    noise_kinds: tuple[NoiseKind, ...] = ("uniform", "gaussian", "laplace")
+    noise_kinds: tuple[NoiseKind, ...] = NOISE_KINDS
     """Noise models each draw's noise is drawn from, one per draw at random."""
     views: int = 6
     resolution: int = 256

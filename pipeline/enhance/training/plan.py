@@ -88,11 +88,11 @@ def run_config(config: str, budget_scale: float = 1.0, poses: int | None = None,
 
 def with_noise_kinds(cfg: tc.TrainConfig, noise: str) -> tc.TrainConfig:
     """`cfg` with every stage's noise models set to the comma-separated `noise`."""
-    names = [k.strip() for k in noise.split(",") if k.strip()]
-    kinds = tuple(k for k in NOISE_KINDS for name in names if name == k)
-    if not names or len(kinds) != len(names):
+    names = {k.strip() for k in noise.split(",") if k.strip()}
+    if not names or not names <= set(NOISE_KINDS):
         raise ValueError(f"--noise: {noise!r} is not a comma-separated list of "
                          f"{', '.join(NOISE_KINDS)}")
+    kinds = tuple(k for k in NOISE_KINDS if k in names)
     return replace(cfg, data=replace(cfg.data, noise_kinds=kinds),
                    selector=replace(cfg.selector, noise_kinds=kinds),
                    gain=replace(cfg.gain, noise_kinds=kinds))

@@ -15,6 +15,7 @@ from pipeline.enhance.metrics import signed_c2m
 from pipeline.enhance.models.twicing_selector import SelectorConfig, TwicingSelector
 from pipeline.enhance.presmooth.scale_selection import twicing_candidates
 from pipeline.enhance.training.data import (
+    NOISE_KINDS,
     NoiseKind,
     isotropic,
     noise_kind,
@@ -39,7 +40,7 @@ class SelectorTrainConfig:
     """Range of the noise amplitude along normals (the bound of uniform noise; the other kinds
     have its standard deviation), in edge lengths (the benchmark's protocol: 10 mm on 5 mm
     edges, 2)."""
-    noise_kinds: tuple[NoiseKind, ...] = ("uniform", "gaussian", "laplace")
+    noise_kinds: tuple[NoiseKind, ...] = NOISE_KINDS
     """Noise models each draw's noise is drawn from, one per draw at random."""
     vertices_per_draw: int = 40_000
     """Vertices of each draw kept for training (drawn at random; large meshes would dominate)."""
