@@ -117,6 +117,7 @@ class JobCreate(BaseModel):
     voxel_refine: StageSettings | None = Field(default=None, description=_SECTION)
     meshing: StageSettings | None = Field(default=None, description=_SECTION)
     remesh: StageSettings | None = Field(default=None, description=_SECTION)
+    surface_fit: StageSettings | None = Field(default=None, description=_SECTION)
     enhancement: dict[str, bool | int | float | str] | None = Field(
         default=None, description="Enhance stage settings by field name (method: ldm, "
         "regressor or classical; views; resolution; steps; strength; min_noise_ratio; "

@@ -20,6 +20,7 @@ from pipeline.reconstruct.depth_filter import DepthFilterConfig
 from pipeline.reconstruct.meshing import MeshingConfig
 from pipeline.reconstruct.registration import RegistrationConfig
 from pipeline.reconstruct.remesh.isotropic import RemeshConfig
+from pipeline.reconstruct.surface_fit import SurfaceFitConfig
 from pipeline.reconstruct.voxel_refine import VoxelRefineConfig
 
 _RIGID_TOLERANCE = 1e-3
@@ -43,6 +44,8 @@ class ReconstructConfig:
     """Poisson-disk sampling and surface (stage mesh)."""
     remesh: RemeshConfig = field(default_factory=RemeshConfig)
     """Isotropic remeshing and angle criteria (stage remesh)."""
+    surface_fit: SurfaceFitConfig = field(default_factory=SurfaceFitConfig)
+    """The remeshed vertices moved onto the refined points (stage fit)."""
     colorize: ColorizeConfig = field(default_factory=ColorizeConfig)
     """Vertex colours from the colour images (stage colorize)."""
     frame_index: int | None = None
@@ -63,7 +66,7 @@ class ReconstructConfig:
 
 
 _SECTIONS = {"depth_filter", "align", "registration", "crop", "voxel_refine",
-             "meshing", "remesh", "enhancement", "colorize"}
+             "meshing", "remesh", "surface_fit", "enhancement", "colorize"}
 CALIBRATION_SECTION = "calibration"
 """The job option section of the calibrate stage (`pipeline.calibration.CalibrationConfig`)."""
 SERVICE_OPTIONS = frozenset({"rig_id", "calibration_capture_id", "rig_name", "calibrate_only",

@@ -15,6 +15,7 @@ Stages (in order):
   refine    the same keys, only the points of each voxel's chosen camera
   mesh      vertices_m (V, 3), faces (F, 3): Poisson-disk samples, screened Poisson
   remesh    vertices_m, faces: isotropic remeshing with angle criteria
+  fit       vertices_m moved along their normals onto the refined points' local planes
   enhance   vertices_m moved to the enhanced depth views (only when ``enhance`` is set)
   colorize  vertices_m, faces, vertex_normals, vertex_colors (when the capture has colour)
 Each stage may also write ``stats_<stage>``: a 0-d string array holding JSON figures.
@@ -45,6 +46,7 @@ from pipeline.reconstruct.depth_filter import filter_depth
 from pipeline.reconstruct.meshing import mesh_cloud
 from pipeline.reconstruct.registration import ray_image, register_view
 from pipeline.reconstruct.remesh.isotropic import remesh
+from pipeline.reconstruct.surface_fit import fit_to_cloud
 from pipeline.reconstruct.voxel_refine import refine_mask
 from pipeline.stage_artifacts import (
     Artifacts,
@@ -60,13 +62,13 @@ from pipeline.stage_artifacts import (
 from pipeline.stage_config import ReconstructConfig, config_hash
 from pipeline.stage_enhance import stage_enhance
 
-STAGES: tuple[str, ...] = ("filter", "align", "register", "refine", "mesh", "remesh",
+STAGES: tuple[str, ...] = ("filter", "align", "register", "refine", "mesh", "remesh", "fit",
                            "enhance", "colorize")
 ENHANCE_STAGE = "enhance"
 SECTION_FIRST_STAGE: dict[str, str] = {
     "depth_filter": "filter", "align": "align", "registration": "register",
     "crop": "register", "voxel_refine": "refine", "meshing": "mesh", "remesh": "remesh",
-    "enhance": "enhance", "enhancement": "enhance", "colorize": "colorize"}
+    "surface_fit": "fit", "enhance": "enhance", "enhancement": "enhance", "colorize": "colorize"}
 """The first stage that reads each `ReconstructConfig` field. A field missing here counts as
 read by every stage (stored outputs are then reused less, never wrongly); one whose reader is
 not planned, by none."""
@@ -237,6 +239,18 @@ def _stage_remesh(capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],
     return result | stats_artifact("remesh", stats)
 
 
+def _stage_fit(capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],
+               config: ReconstructConfig, progress: Progress | None) -> Artifacts:
+    points, normals = require_keys(inputs, ("points_world", "normals_world"), "fit")
+    mesh = mesh_from_artifacts(inputs)
+    fitted = fit_to_cloud(mesh, np.asarray(points, dtype=np.float64), normals,
+                          config.surface_fit)
+    tick(progress, 1.0)
+    moved_m = np.linalg.norm(fitted.vertices_m - mesh.vertices_m, axis=1)
+    stats = {"moved_mean_m": float(moved_m.mean()) if len(moved_m) else 0.0}
+    return {"vertices_m": fitted.vertices_m} | stats_artifact("fit", stats)
+
+
 def _stage_colorize(capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],
                     config: ReconstructConfig, progress: Progress | None) -> Artifacts:
     mesh = mesh_from_artifacts(inputs)
@@ -260,8 +274,8 @@ def _stage_colorize(capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],
 
 _STAGE_FUNCTIONS = {"filter": _stage_filter, "align": _stage_align,
                     "register": _stage_register, "refine": _stage_refine,
-                    "mesh": _stage_mesh, "remesh": _stage_remesh, "enhance": stage_enhance,
-                    "colorize": _stage_colorize}
+                    "mesh": _stage_mesh, "remesh": _stage_remesh, "fit": _stage_fit,
+                    "enhance": stage_enhance, "colorize": _stage_colorize}
 
 
 def run_stage(name: str, capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],
@@ -333,6 +347,6 @@ def _drop_consumed(artifacts: Artifacts, stage: str) -> None:
     if stage == "register":
         for key in [k for k in artifacts if k.startswith("depth_m_")]:
             del artifacts[key]
-    if stage == "mesh":
+    if stage == "fit":
         for key in ("points_world", "normals_world", "camera_index", "point_colors"):
             artifacts.pop(key, None)
