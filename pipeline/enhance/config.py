@@ -108,8 +108,5 @@ def validate_config(config: EnhanceConfig) -> None:
         raise ValueError(
             f"bounded_noise: rings and smoothing must be >= 0, got {config.bounded_noise.rings}"
             f" and {config.bounded_noise.smoothing}")
-    if config.bounded_noise.weight_passes < 0:
-        raise ValueError(
-            f"bounded_noise: weight_passes must be >= 0, got {config.bounded_noise.weight_passes}")
     if config.remesh_iterations < 0:
         raise ValueError(f"remesh_iterations must be >= 0, got {config.remesh_iterations}")

@@ -61,28 +61,19 @@ def selector_presmoothed(mesh: TriangleMesh, selector, bounded: BoundedNoiseConf
                          device: str | None = None) -> TriangleMesh:
     """The pre-smoothing of every method: a loaded selector's (`load_selector`) blend of the
     mesh's twicings (scale selection), then the midrange estimator of `bounded` where given
-    and where it runs (`refined_where_bounded`), from the blend of the weights averaged over
-    the neighbours (`BoundedNoiseConfig.weight_passes`); where it does not run, the blend as
-    it is. The smoothing steps run on `device` (None: scipy)."""
+    and where it runs (`refined_where_bounded`). The smoothing steps run on `device` (None:
+    scipy)."""
     from pipeline.enhance.device import accelerator
     from pipeline.enhance.presmooth.midrange import refined_where_bounded
-    from pipeline.enhance.presmooth.scale_selection import (
-        blend,
-        twicing_candidates,
-        weights_averaged,
-    )
+    from pipeline.enhance.presmooth.scale_selection import blend, twicing_candidates
 
     candidates = twicing_candidates(mesh, selector.config.blend, device)
     weights = by_row_chunks(selector, candidates.features, device or "cpu")
-
-    def blended(rows: NDArray[np.float32]) -> TriangleMesh:
-        return mesh.with_vertices(blend(candidates.vertices_m, rows))
-
+    blended = mesh.with_vertices(blend(candidates.vertices_m, weights))
     if bounded is None:
-        return blended(weights)
-    base = blended(weights_averaged(candidates, weights, bounded.weight_passes))
-    refined = refined_where_bounded(mesh, base, bounded, accelerator(device))
-    return blended(weights) if refined is None else refined
+        return blended
+    refined = refined_where_bounded(mesh, blended, bounded, accelerator(device))
+    return blended if refined is None else refined
 
 
 Network = Callable[["torch.Tensor", "torch.Tensor", "torch.Tensor"], "torch.Tensor"]

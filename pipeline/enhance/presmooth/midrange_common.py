@@ -18,14 +18,6 @@ class BoundedNoiseConfig:
     max_kurtosis: float = 2.4
     """The refinement runs only where the residuals' kurtosis is below this: halfway between
     uniform noise's 1.8 and Gaussian noise's 3."""
-    weight_passes: int = 1
-    """Where the smooth mesh is the selector's blend of twicings, passes of neighbour
-    averaging of its per-vertex weights in the blend the refinement starts from
-    (`inference.selector_presmoothed`; 0: the blend as it is). The refinement takes out what
-    the smooth mesh got wrong where that varies little within its rings; the selector's
-    choice, made vertex by vertex, varies from one vertex to the next, and one pass takes
-    that out. One pass did best on the training meshes, though the blend alone gets a little
-    worse, so where the refinement does not run the blend is kept as it is."""
 
 
 def residual_kurtosis(residual_m) -> float:

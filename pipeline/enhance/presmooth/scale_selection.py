@@ -61,9 +61,6 @@ class TwicingCandidates:
     """(V, F) per-vertex features, lengths in units of `noise_std_m`."""
     noise_std_m: float
     """Estimated standard deviation of the vertex noise along the normals."""
-    average: Callable[[NDArray[np.float32]], NDArray[np.float32]]
-    """(V, C) float32 rows -> each vertex's neighbours' mean row, where the candidates were
-    made (`FieldOps.average`): for the selector's weights (`weights_averaged`)."""
 
 
 def twicing_candidates(
@@ -107,8 +104,7 @@ def twicing_candidates(
     scales = _multiscale(ops.average, ops.columns(columns), config.feature_rings)
     features = np.concatenate([ops.to_numpy(a) for a in scales], axis=1)
     return TwicingCandidates(
-        np.stack([ops.to_numpy(c) for c in candidates]), features, noise_std_m,
-        lambda rows: ops.to_numpy(ops.average(ops.to_field(rows))))
+        np.stack([ops.to_numpy(c) for c in candidates]), features, noise_std_m)
 
 
 def _field_ops(mesh: TriangleMesh, boundary_pilot_iterations: int, device: str | None
@@ -175,15 +171,6 @@ def _multiscale(average: Callable[[Any], Any], columns, rings: tuple[int, ...]) 
         done = r
         out.append(a)
     return out
-
-
-def weights_averaged(candidates: TwicingCandidates, weights: NDArray[np.float32], passes: int
-                     ) -> NDArray[np.float32]:
-    """(V, K) the selector's weights, each vertex's replaced by its neighbours' mean `passes`
-    times (each row still sums to 1)."""
-    for _ in range(passes):
-        weights = candidates.average(weights)
-    return weights
 
 
 def blend(candidates: NDArray[np.float64], weights: NDArray) -> NDArray[np.float64]:

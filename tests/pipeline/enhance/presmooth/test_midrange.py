@@ -134,8 +134,6 @@ def test_the_refinement_takes_a_sixth_off_the_smoothings_error():
 def test_a_negative_ring_count_is_named():
     with pytest.raises(ValueError, match="bounded_noise"):
         validate_config(EnhanceConfig(bounded_noise=BoundedNoiseConfig(rings=-1)))
-    with pytest.raises(ValueError, match="weight_passes"):
-        validate_config(EnhanceConfig(bounded_noise=BoundedNoiseConfig(weight_passes=-1)))
 
 
 @pytest.mark.parametrize("open_boundary", [False, True])
@@ -167,33 +165,8 @@ def _selector_presmoothed(noisy: TriangleMesh, config: BoundedNoiseConfig | None
     return selector_presmoothed(noisy, load_selector(shipped_bytes("selector")), config)
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2])
-def test_the_selectors_averaged_weights_give_the_refinement_a_closer_start(seed):
-    """Uniform noise on a sphere: the refinement from the blend of the selector's weights
-    averaged once over the neighbours (each row still summing to 1) ends closer than from
-    the blend of its own weights. With the shipped selector, trained on every noise model, by
-    little: 0.993 of it at seed 0."""
-    import torch
-
-    from pipeline.enhance.presmooth.scale_selection import twicing_candidates, weights_averaged
-    from pipeline.enhance.weights import shipped_bytes
-    from pipeline.enhance.weights.loading import load_selector
-
-    noisy = noisy_along_normals(sphere(0.5, 64), 0.01, np.random.default_rng(seed))
-    plain = radial_rms_m(_selector_presmoothed(noisy, BoundedNoiseConfig(weight_passes=0)))
-    averaged = radial_rms_m(_selector_presmoothed(noisy, BoundedNoiseConfig(weight_passes=1)))
-    assert averaged < plain
-    model = load_selector(shipped_bytes("selector"))
-    candidates = twicing_candidates(noisy, model.config.blend)
-    with torch.no_grad():
-        weights = model(torch.from_numpy(candidates.features)).numpy()
-    np.testing.assert_allclose(weights_averaged(candidates, weights, 2).sum(axis=1), 1.0,
-                               atol=1e-5)
-
-
 def test_where_the_refinement_does_not_run_the_selectors_blend_is_kept():
-    """Gaussian noise: the refinement stays off, and the output is the selector's blend of
-    its own weights, not of the averaged ones the refinement would have started from."""
+    """Gaussian noise: the refinement stays off, and the output is the selector's blend."""
     rng = np.random.default_rng(0)
     clean = sphere(0.5, 64)
     from pipeline.geometry.mesh import vertex_normals
