@@ -95,6 +95,16 @@ def sphere_mesh(subdivisions: int = 5) -> TriangleMesh:
                         faces=np.asarray(ico.faces, dtype=np.int32))
 
 
+def sphere_cloud(count: int, noise_m: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """(count, 3) points on the sphere, moved along its normal by Gaussian noise of noise_m,
+    and their (count, 3) float32 unit normals."""
+    rng = np.random.default_rng(seed)
+    normals = rng.normal(size=(count, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    points = CENTRE + normals * (RADIUS + rng.normal(0, noise_m, size=(count, 1)))
+    return points, normals.astype(np.float32)
+
+
 def distance_to_sphere(points: np.ndarray) -> np.ndarray:
     """Signed distance of (N, 3) points to the analytic sphere (positive outside)."""
     return np.linalg.norm(points - CENTRE, axis=1) - RADIUS

@@ -13,7 +13,7 @@ from pipeline.reconstruct.meshing import (
     poisson_disk_indices,
     poisson_disk_samples,
 )
-from tests.pipeline.sphere_scene import CENTRE, RADIUS, distance_to_sphere
+from tests.pipeline.sphere_scene import CENTRE, distance_to_sphere, sphere_cloud
 
 
 @settings(max_examples=30, deadline=None)
@@ -33,16 +33,8 @@ def test_poisson_disk_samples_are_apart_and_cover_the_cloud(seed: int, count: in
     assert dist.max() < 2 * radius
 
 
-def _sphere_cloud(count: int, noise_m: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    rng = np.random.default_rng(seed)
-    normals = rng.normal(size=(count, 3))
-    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    points = CENTRE + normals * (RADIUS + rng.normal(0, noise_m, size=(count, 1)))
-    return points, normals.astype(np.float32)
-
-
 def test_averaged_samples_are_less_noisy_than_the_cloud() -> None:
-    points, normals = _sphere_cloud(60_000, 0.002)
+    points, normals = sphere_cloud(60_000, 0.002)
     samples, sample_normals = poisson_disk_samples(points, normals, MeshingConfig())
     assert len(samples) < len(points) / 3
     assert np.std(distance_to_sphere(samples)) < 0.6 * np.std(distance_to_sphere(points))
@@ -50,7 +42,7 @@ def test_averaged_samples_are_less_noisy_than_the_cloud() -> None:
 
 
 def test_a_noisy_sphere_cloud_becomes_a_close_surface() -> None:
-    points, normals = _sphere_cloud(60_000, 0.001)
+    points, normals = sphere_cloud(60_000, 0.001)
     mesh, samples = mesh_cloud(points, normals, MeshingConfig())
     assert samples > 1000
     d = distance_to_sphere(mesh.vertices_m)
@@ -62,7 +54,7 @@ def test_a_noisy_sphere_cloud_becomes_a_close_surface() -> None:
 
 
 def test_the_surface_is_trimmed_where_nothing_was_seen() -> None:
-    points, normals = _sphere_cloud(60_000, 0.0)
+    points, normals = sphere_cloud(60_000, 0.0)
     cap = points[:, 1] > CENTRE[1]  # only the upper half was seen
     mesh, _ = mesh_cloud(points[cap], normals[cap], MeshingConfig())
     assert mesh.vertices_m[:, 1].min() > CENTRE[1] - 0.03
@@ -71,7 +63,7 @@ def test_the_surface_is_trimmed_where_nothing_was_seen() -> None:
 def test_the_same_cloud_meshes_to_the_same_surface() -> None:
     """One Poisson thread (the default): with two, runs on this cloud give different vertex
     arrays."""
-    points, normals = _sphere_cloud(60_000, 0.002)
+    points, normals = sphere_cloud(60_000, 0.002)
     first, _ = mesh_cloud(points, normals, MeshingConfig())
     again, _ = mesh_cloud(points, normals, MeshingConfig())
     assert np.array_equal(first.faces, again.faces)

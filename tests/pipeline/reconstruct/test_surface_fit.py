@@ -8,15 +8,13 @@ from hypothesis import strategies as st
 from pipeline.geometry.mesh import TriangleMesh
 from pipeline.reconstruct.surface_fit import SurfaceFitConfig, fit_to_cloud
 from tests.pipeline.meshes import grid
-from tests.pipeline.sphere_scene import CENTRE, RADIUS, distance_to_sphere, sphere_mesh
-
-
-def _sphere_cloud(count: int, noise_m: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    rng = np.random.default_rng(seed)
-    normals = rng.normal(size=(count, 3))
-    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    points = CENTRE + normals * (RADIUS + rng.normal(0, noise_m, size=(count, 1)))
-    return points, normals.astype(np.float32)
+from tests.pipeline.sphere_scene import (
+    CENTRE,
+    RADIUS,
+    distance_to_sphere,
+    sphere_cloud,
+    sphere_mesh,
+)
 
 
 def _scaled(mesh: TriangleMesh, factor: float) -> TriangleMesh:
@@ -26,7 +24,7 @@ def _scaled(mesh: TriangleMesh, factor: float) -> TriangleMesh:
 @settings(max_examples=15, deadline=None)
 @given(offset_m=st.floats(-0.008, 0.008), seed=st.integers(0, 2**31))
 def test_an_offset_sphere_comes_back_onto_its_cloud(offset_m: float, seed: int) -> None:
-    points, normals = _sphere_cloud(200_000, 0.0, seed)
+    points, normals = sphere_cloud(200_000, 0.0, seed)
     mesh = _scaled(sphere_mesh(4), 1 + offset_m / RADIUS)
     fitted = fit_to_cloud(mesh, points, normals, SurfaceFitConfig())
     assert np.abs(distance_to_sphere(fitted.vertices_m)).max() < 2e-4
@@ -34,7 +32,7 @@ def test_an_offset_sphere_comes_back_onto_its_cloud(offset_m: float, seed: int) 
 
 
 def test_the_fit_averages_the_clouds_noise() -> None:
-    points, normals = _sphere_cloud(200_000, 0.002)
+    points, normals = sphere_cloud(200_000, 0.002)
     fitted = fit_to_cloud(_scaled(sphere_mesh(4), 1.01), points, normals, SurfaceFitConfig())
     rms_m = np.sqrt(np.mean(distance_to_sphere(fitted.vertices_m) ** 2))
     assert rms_m < 0.6e-3
@@ -82,7 +80,7 @@ def test_the_far_side_of_a_thin_part_does_not_pull(min_normal_cosine: float,
 
 
 def test_vertices_with_no_points_nearby_stay() -> None:
-    points, normals = _sphere_cloud(10_000, 0.0)
+    points, normals = sphere_cloud(10_000, 0.0)
     far = TriangleMesh(sphere_mesh(2).vertices_m + [5.0, 0.0, 0.0], sphere_mesh(2).faces)
     np.testing.assert_array_equal(
         fit_to_cloud(far, points, normals, SurfaceFitConfig()).vertices_m, far.vertices_m)
