@@ -75,13 +75,11 @@ def normal_shifts_m(vertices_m: FloatArray, normals: FloatArray, points_world: F
     facing = np.einsum("vkc,vc->vk", point_normals[near].astype(np.float64), normals)
     usable = found & (np.abs(along) <= config.max_shift_m) & (
         facing >= config.min_normal_cosine)
+    # Every found point lies within `reach`, so the kernel is never negative where it counts.
     reach = np.where(found, across, 0.0).max(axis=1, keepdims=True)
-    weight = np.where(usable, np.clip(1.0 - (across / np.maximum(reach, 1e-12)) ** 2,
-                                      0.0, None) ** 2, 0.0)
-    total = weight.sum(axis=1)
-    shift = (weight * along).sum(axis=1) / np.maximum(total, 1e-300)
-    enough = (np.count_nonzero(weight, axis=1) >= config.min_points) & (total > 0)
-    return np.where(enough, shift, 0.0)
+    weight = np.where(usable, (1.0 - (across / np.maximum(reach, 1e-12)) ** 2) ** 2, 0.0)
+    shift = (weight * along).sum(axis=1) / np.maximum(weight.sum(axis=1), 1e-300)
+    return np.where(np.count_nonzero(weight, axis=1) >= config.min_points, shift, 0.0)
 
 
 def fit_to_cloud(mesh: TriangleMesh, points_world: FloatArray,
