@@ -119,8 +119,8 @@ class JobCreate(BaseModel):
     remesh: StageSettings | None = Field(default=None, description=_SECTION)
     surface_fit: StageSettings | None = Field(default=None, description=_SECTION)
     enhancement: dict[str, bool | int | float | str] | None = Field(
-        default=None, description="Enhance stage settings by field name (method: ldm, "
-        "regressor or classical; views; resolution; steps; strength; min_noise_ratio; "
+        default=None, description="Enhance stage settings by field name (method: regressor, "
+        "ldm or classical; views; resolution; steps; strength; min_noise_ratio; "
         "self_check: keep the networks' update only where it beats the classical ending on a "
         "simulated copy).")
     colorize: StageSettings | None = Field(default=None, description=_SECTION)

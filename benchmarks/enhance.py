@@ -15,7 +15,8 @@ instead, as sensors make it; uniform, the default, keeps the paper's protocol.
 
 The timing alone, per stage, in this process (on a GPU: `--device cuda`):
 
-    .venv/bin/python benchmarks/enhance.py --perf-child [--device cuda] [--remesh-iterations 0]
+    .venv/bin/python benchmarks/enhance.py --perf-child [--method regressor|ldm|classical]
+        [--device cuda] [--remesh-iterations 0]
         [--remesh auto|ahead|after] [--warm-up small|full] [--networks loaded|kept]
         [--min-piece-faces N] [--profile FILE]
 """
@@ -58,6 +59,7 @@ from enhance_protocol import (  # noqa: E402
 )
 
 from pipeline.enhance import EnhanceConfig, enhance_mesh  # noqa: E402
+from pipeline.enhance.config import METHODS  # noqa: E402
 from pipeline.enhance.enhancement import CHECKED_STAGE_PROGRESS, STAGE_PROGRESS  # noqa: E402
 from pipeline.enhance.networks import load_networks  # noqa: E402
 from pipeline.enhance.training.data import DataConfig  # noqa: E402
@@ -196,7 +198,8 @@ def _recording_remesh_stats(stats: dict) -> None:
 
 
 def perf_child(args) -> None:
-    """Runs one LDM enhancement in this fresh process and prints seconds, the seconds of each
+    """Runs one enhancement (`--method`, by default the product's) in this fresh process and
+    prints seconds, the seconds of each
     stage (`STAGE_PROGRESS`), the light remesh's wait for its kernel and peak RSS. A warm-up
     call runs first: at 32² (`--warm-up small`: imports and first-call costs, not the
     shapes of the timed call), or the timed call itself (`--warm-up full`: a worker's second
@@ -214,7 +217,7 @@ def perf_child(args) -> None:
                                   name=args.mesh, noise=args.noise)
     weights = weights_folder(args.weights)
     cfg = EnhanceConfig(
-        method="ldm", views=args.views, resolution=args.resolution, steps=args.steps,
+        method=args.method, views=args.views, resolution=args.resolution, steps=args.steps,
         remesh_iterations=args.remesh_iterations, device=args.device, weights=weights,
         remesh_ahead={"auto": None, "ahead": True, "after": False}[args.remesh],
         self_check=args.self_check,
@@ -243,8 +246,8 @@ def perf_child(args) -> None:
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     stages = {name: t - before for (_, before), (name, t) in zip(ends, ends[1:], strict=False)}
     print(json.dumps({
-        "mesh": args.mesh, "seconds": ends[-1][1] - ends[0][1], "stage_seconds": stages,
-        "device": args.device,
+        "mesh": args.mesh, "method": args.method, "seconds": ends[-1][1] - ends[0][1],
+        "stage_seconds": stages, "device": args.device,
         "remesh_iterations": args.remesh_iterations, "warm_up": args.warm_up,
         "networks": args.networks,
         "self_checked": args.self_check, "profiled": profiler is not None,
@@ -264,7 +267,7 @@ def fresh_process_timing(args, remesh_iterations: int) -> dict:
     child = [sys.executable, __file__, "--perf-child", "--meshes", args.meshes, "--mesh", args.mesh]
     child += ["--views", str(args.views), "--resolution", str(args.resolution)]
     child += ["--remesh-iterations", str(remesh_iterations), "--edge-mm", str(args.edge_mm)]
-    child += ["--noise", args.noise]
+    child += ["--noise", args.noise, "--method", args.method]
     child += ["--weights", args.weights] if args.weights else []
     proc = subprocess.run(child, capture_output=True, text=True)
     if proc.returncode != 0:
@@ -309,6 +312,8 @@ def main() -> None:
     ap.add_argument("--edge-mm", type=float, default=5.0,
                     help="the protocol's edge length, mm (finer: a larger mesh, for timings)")
     ap.add_argument("--steps", type=int, default=4, help=argparse.SUPPRESS)
+    ap.add_argument("--method", choices=METHODS, default=EnhanceConfig().method,
+                    help="the method timed in a fresh process (default: the product's)")
     args = ap.parse_args()
     if args.perf_child:
         perf_child(args)
@@ -375,12 +380,12 @@ def main() -> None:
             methods[label] = run_method(noisy, truth, cfg)
         except ValueError as exc:
             methods[label] = {"error": str(exc)}
-    report["ldm_4_steps_fresh_process"] = fresh_process_timing(args, remesh_iterations=1)
-    report["ldm_4_steps_fresh_process_no_remesh"] = fresh_process_timing(args, 0)
+    report["fresh_process"] = fresh_process_timing(args, remesh_iterations=1)
+    report["fresh_process_no_remesh"] = fresh_process_timing(args, 0)
     if not args.quick:
         report["depth_level"] = depth_level(weights, args.depth_views, args.seed, meshes)
     report["load_average_at_end"] = os.getloadavg()
-    report["targets"] = targets(methods, report["ldm_4_steps_fresh_process"])
+    report["targets"] = targets(methods, report["fresh_process"])
     print(json.dumps(report, indent=1))
 
 

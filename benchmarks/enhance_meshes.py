@@ -110,7 +110,7 @@ def mesh_report(meshes: Path, name: str, weights: dict | None, role_of: str,
     ):
         methods[label] = run_method(noisy, truth, cfg)
     found = targets(methods, {})
-    held = found["ldm_4_steps"]
+    held = found[EnhanceConfig().method]
     angles = triangle_angles_deg(truth.vertices_m, truth.faces)
     return {
         "role": role_of,
@@ -159,7 +159,7 @@ def main() -> None:
         except ValueError as exc:  # no such file, or the remesher refuses the input
             report["meshes"][name] = {"role": name_role, "error": str(exc)}
         row = report["meshes"][name]
-        shown = ("laplacian", "selector", "classical", "ldm_4_steps")
+        shown = ("laplacian", "selector", "classical", "regressor", "ldm_4_steps")
         brief = {k: row["methods"][k]["c2m_rms_mm"] for k in shown} if "methods" in row else row
         print(name, json.dumps(brief), file=sys.stderr, flush=True)
     report["summary"] = summary(report["meshes"])
@@ -167,14 +167,15 @@ def main() -> None:
 
 
 def summary(rows: dict) -> dict:
-    """Per role: meshes scored, on how many every quality target holds, on how many the
-    networks beat their own pre-smoothing, and the mean RMS gain over the best classical."""
+    """Per role, for the default method: meshes scored, on how many every quality target
+    holds, on how many the networks beat their own pre-smoothing, and the mean RMS gain over
+    the best classical."""
     out: dict = {}
     for which in ("train", "validation", "test"):
         scored = {n: r for n, r in rows.items() if r["role"] == which and "targets" in r}
         if not scored:
             continue
-        gains = [r["targets"]["ldm_4_steps"]["rms_gain_over_best_classical"]
+        gains = [r["targets"][EnhanceConfig().method]["rms_gain_over_best_classical"]
                  for r in scored.values()]
         out[which] = {
             "scored": len(scored),

@@ -1,4 +1,4 @@
-"""`volumesh enhance-mesh`: enhancement of one mesh file (ldm, regressor or classical)."""
+"""`volumesh enhance-mesh`: enhancement of one mesh file (regressor, ldm or classical)."""
 
 from __future__ import annotations
 
@@ -73,9 +73,10 @@ def enhance_mesh_command(
     out: Annotated[Path, typer.Option("--out", help="Output mesh: .glb (glTF binary, Draco) "
                                       "or .ply.")],
     method: Annotated[str, typer.Option(
-        "--method", help="ldm | regressor (a network corrects the pre-smoothed mesh's depth "
-        "views) | classical (the same pre-smoothing and ending, no network).")] = "ldm",
-    steps: Annotated[int, typer.Option("--steps", help="DDIM steps (1 = one-step mode).")] = 4,
+        "--method", help="regressor | ldm (a network corrects the pre-smoothed mesh's depth "
+        "views) | classical (the same pre-smoothing and ending, no network).")] = "regressor",
+    steps: Annotated[int, typer.Option(
+        "--steps", help="DDIM steps of the LDM (1 = one-step mode).")] = 4,
     self_check: Annotated[bool, typer.Option(
         "--self-check/--no-self-check",
         help="Before the networks' update, enhance a simulated copy of the mesh (the "

@@ -8,7 +8,7 @@ from pipeline.enhance.presmooth.midrange import BoundedNoiseConfig
 from pipeline.enhance.update.normal_filter import NormalFilterConfig
 from pipeline.enhance.update.steps import UpdateConfig
 
-NETWORK_METHODS = ("ldm", "regressor")
+NETWORK_METHODS = ("regressor", "ldm")
 """The methods whose depth correction is a network."""
 METHODS = (*NETWORK_METHODS, "classical")
 """Every method `enhance_mesh` runs."""
@@ -38,9 +38,11 @@ that sets one is refused with that line rather than told the setting is unknown.
 class EnhanceConfig:
     """How to enhance a mesh."""
 
-    method: str = "ldm"
-    """ldm or regressor: the network corrects the pre-smoothed mesh's depth views and the
-    vertices follow; classical: the same pre-smoothing and ending with no network between."""
+    method: str = "regressor"
+    """regressor or ldm: the network corrects the pre-smoothed mesh's depth views and the
+    vertices follow; classical: the same pre-smoothing and ending with no network between.
+    The regressor is the default: the LDM's diffusion steps add nothing over it
+    (docs/decisions/regressor-default.md)."""
     views: int = 6
     """Number of depth views the networks correct (the six axis views first)."""
     resolution: int = 256

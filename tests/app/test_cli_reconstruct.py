@@ -73,7 +73,7 @@ def test_reconstruct_enhances_when_asked(capture: Path, tmp_path: Path) -> None:
     assert figures["stages"][remeshed:remeshed + 3] == ["remesh", "fit", "enhance"]
     moved = figures["stage_stats"]["enhance"]
     # The synthetic capture reconstructs to a clean surface: the networks leave it as it is.
-    assert moved["method"] == "ldm" and moved["noise_ratio"] < 0.05
+    assert moved["method"] == "regressor" and moved["noise_ratio"] < 0.05
     assert moved["skipped_as_clean"] is True and moved["max_offset_m"] < 1e-6
     assert read_mesh(out).face_count == figures["triangles"]
 

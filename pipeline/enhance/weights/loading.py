@@ -106,10 +106,6 @@ def load_vae(data: bytes, device: str | torch.device = "cpu"):
     from pipeline.enhance.models.vae import DepthVAE, VAEConfig
 
     state, cfg = weights_from_bytes(data, device)
-    # The shipped file's metadata names an encoder input, off: the encoder reads depth alone.
-    if cfg.pop("encode_correction", False):
-        raise ValueError("vae: an encoder reading the correction (encode_correction) is not "
-                         "supported")
     return _with_weights(lambda: DepthVAE(VAEConfig(**_tuples(cfg))), state)
 
 

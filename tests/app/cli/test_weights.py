@@ -67,3 +67,32 @@ def test_the_removed_commands_name_their_replacements(tmp_path):
         line = done.stderr.strip().splitlines()[-1]
         assert line.startswith(f"volumesh: error: {command}: removed") and replacement in line
     assert not (tmp_path / "x").exists()
+
+
+def test_the_shipped_networks_average_with_a_run_started_from_them(tmp_path):
+    """A fine-tuning run from the shipped weights (`--init`) writes its networks' configs as
+    the trainer spells them; the shipped files must read as the same networks."""
+    from dataclasses import asdict
+
+    from pipeline.enhance.models.vae import VAEConfig
+    from pipeline.enhance.weights import shipped_bytes
+    from pipeline.enhance.weights.loading import load_vae, weights_from_bytes, weights_to_bytes
+
+    shipped = tmp_path / "shipped"
+    shipped.mkdir()
+    for name in ("regressor", "vae", "ldm"):
+        (shipped / f"{name}.safetensors").write_bytes(shipped_bytes(name))
+    run = tmp_path / "run"
+    run.mkdir()
+    vae = load_vae(shipped_bytes("vae"))
+    _, shipped_config = weights_from_bytes(shipped_bytes("vae"))
+    as_trained = VAEConfig(channels=tuple(shipped_config["channels"]),
+                           initial_logvar=shipped_config["initial_logvar"])
+    (run / "vae.safetensors").write_bytes(weights_to_bytes(vae.state_dict(), asdict(as_trained)))
+    for name in ("regressor", "ldm"):
+        (run / f"{name}.safetensors").write_bytes(shipped_bytes(name))
+    done = _cli("train", "--average", str(shipped), str(run), "--out", str(tmp_path / "mixed"))
+    assert done.returncode == 0, done.stderr
+    mixed = load_vae((tmp_path / "mixed" / "vae.safetensors").read_bytes()).state_dict()
+    for k, v in vae.state_dict().items():
+        assert torch.equal(mixed[k], v), k

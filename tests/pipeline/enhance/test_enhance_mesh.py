@@ -78,7 +78,7 @@ def test_learned_gains_give_each_vertex_its_own_share_of_the_correction(
 def test_a_method_not_offered_is_named_with_the_three(method: str) -> None:
     from pipeline.enhance.config import validate_config
 
-    with pytest.raises(ValueError, match="one of ldm, regressor, classical") as raised:
+    with pytest.raises(ValueError, match="one of regressor, ldm, classical") as raised:
         validate_config(EnhanceConfig(method=method))
     assert ("'classical' replaces the smoothers" in str(raised.value)) == (method != "magic")
 

@@ -71,15 +71,18 @@ def test_vae_latent_reads_local_shape_not_the_depth_offset(shift):
     assert torch.allclose(vae.encode(moved, v).mean, vae.encode(d, v).mean, atol=1e-4)
 
 
-def test_the_shipped_vae_loads_and_a_correction_encoder_is_refused():
+def test_the_shipped_vae_loads_and_names_only_settings_the_model_has():
+    from dataclasses import fields
+
+    from pipeline.enhance.models.vae import VAEConfig
     from pipeline.enhance.weights import shipped_bytes
     from pipeline.enhance.weights.loading import load_vae, weights_from_bytes, weights_to_bytes
 
     shipped = shipped_bytes("vae")
     state, config = weights_from_bytes(shipped)
-    assert config["encode_correction"] is False  # the shipped file names it, off
+    assert set(config) == {f.name for f in fields(VAEConfig)}
     assert isinstance(load_vae(shipped), DepthVAE)
-    with pytest.raises(ValueError, match="encode_correction"):
+    with pytest.raises(TypeError, match="encode_correction"):
         load_vae(weights_to_bytes(state, {**config, "encode_correction": True}))
 
 
