@@ -10,7 +10,7 @@ up to 1 mm and 0.1 degrees, the Azure Kinect noise model), a synthetic capture i
 reconstructed as `volumesh reconstruct --no-enhance` does it (`plain`), and that mesh is then:
 
 * `enhanced`: the enhance stage as `volumesh reconstruct --enhance` runs it (noise gate, the
-  shipped LDM);
+  default network);
 * `ldm` and `regressor`: `enhance_mesh` with the gate passed, each depth network;
 * `classical`: the classical method (pre-smoothing, normal filter, light remesh);
 * `oracle_smoothing`: the best of Laplacian, Taubin, twicing and bilateral normal filtering
