@@ -47,8 +47,7 @@ def test_only_the_gpu_worker_enhances(tmp_path: Path) -> None:
             for resolution in (64, 48):
                 response = client.post("/api/v1/jobs", headers=auth, json={
                     "capture_id": capture_id, **FAST_JOB, "enhance": True,
-                    "enhancement": {"resolution": resolution, "steps": 1,
-                                    "min_noise_ratio": 0.0}})
+                    "enhancement": {"resolution": resolution, "min_noise_ratio": 0.0}})
                 assert response.status_code == 202, response.text
                 job = wait_job(client, response.json()["id"], {"succeeded", "failed"}, 180)
                 assert job["state"] == "succeeded", job["error"]
@@ -60,6 +59,6 @@ def test_only_the_gpu_worker_enhances(tmp_path: Path) -> None:
         assert report["stage_stats"]["enhance"]["mean_offset_m"] > 0
     gpu_log = (tmp_path / "gpu.log").read_text(errors="replace")
     assert _stages_run(tmp_path / "gpu.log") == ["enhance", "enhance"]
-    assert len(re.findall(r"enhance networks for ldm on \w+ loaded", gpu_log)) == 1
+    assert len(re.findall(r"enhance networks for regressor on \w+ loaded", gpu_log)) == 1
     assert "enhance" not in _stages_run(tmp_path / "cpu.log")
     assert "colorize" in _stages_run(tmp_path / "cpu.log")

@@ -36,8 +36,8 @@ def test_networks_for_another_config_are_refused(
         noisy_sphere: tuple[TriangleMesh, TriangleMesh]) -> None:
     _, noisy = noisy_sphere
     networks = load_networks(SMALL)
-    for other in (replace(SMALL, method="regressor"), replace(SMALL, method="classical"),
-                  replace(SMALL, weights={"ldm_gain": shipped_bytes("regressor_gain")})):
+    for other in (replace(SMALL, method="ldm"), replace(SMALL, method="classical"),
+                  replace(SMALL, weights={"regressor_gain": shipped_bytes("ldm_gain")})):
         assert not networks.fits(other)
         with pytest.raises(ValueError, match="networks: loaded for another"):
             enhance_mesh(noisy, other, networks=networks)
@@ -45,13 +45,14 @@ def test_networks_for_another_config_are_refused(
 
 
 def test_what_each_method_loads() -> None:
-    ldm = load_networks(SMALL)
-    assert ldm.enhancer is not None and ldm.selector is not None and ldm.gain is not None
+    default = load_networks(SMALL)
+    assert default.enhancer is not None and default.selector is not None
+    assert default.gain is not None
     classical = replace(SMALL, method="classical")
     assert not uses_gain(classical)
     plain = load_networks(classical)
     assert plain.enhancer is None and plain.selector is not None and plain.gain is None
-    assert networks_key(SMALL) != networks_key(replace(SMALL, method="regressor"))
+    assert networks_key(SMALL) != networks_key(replace(SMALL, method="ldm"))
 
 
 def test_the_kept_networks_are_the_ones_run(
