@@ -6,9 +6,9 @@
 On each mesh (by default spot and fandisk, held apart for validation, and the bunny, the test
 model) and noise model of `enhance_noise.py`, for the weights in --before and in --after
 (default: the shipped): the pre-smoothing (the selector's blend, then the midrange estimator),
-the `classical` method, the regressor and the LDM, each as C2M RMS mm and mean normal error °,
-and each method's RMS after / before. The classical smoothers do not depend on the weights:
-`enhance_noise.py` gives them.
+the `classical` method, the regressor and the LDM (at 4 steps and at 1), each as C2M RMS mm
+and mean normal error °, and each method's RMS after / before. The classical smoothers do
+not depend on the weights: `enhance_noise.py` gives them.
 """
 
 from __future__ import annotations
@@ -40,15 +40,18 @@ from pipeline.enhance.weights import shipped_bytes  # noqa: E402
 from pipeline.enhance.weights.loading import load_selector  # noqa: E402
 
 DEFAULT_MESHES = ("spot", "fandisk", "stanford-bunny")
-METHODS = ("presmoothing", "classical", "regressor", "ldm")
+METHODS = ("presmoothing", "classical", "regressor", "ldm", "ldm_1_step")
 
 
 def figures(noisy, truth, weights: dict[str, bytes]) -> dict:
     selector = weights.get("selector") or shipped_bytes("selector")
     out = {"presmoothing": score(selector_presmoothed(noisy, load_selector(selector),
                                                       BoundedNoiseConfig()), truth, 0.0)}
-    for method in METHODS[1:]:
+    for method in METHODS[1:4]:
         out[method] = run_method(noisy, truth, EnhanceConfig(method=method, weights=weights))
+    # Whether the diffusion steps do anything: the LDM at one step against its default four.
+    out["ldm_1_step"] = run_method(noisy, truth, EnhanceConfig(method="ldm", steps=1,
+                                                               weights=weights))
     return {m: {"c2m_rms_mm": round(r["c2m_rms_mm"], 4),
                 "normal_error_deg": round(r["normal_error_deg"], 2)} for m, r in out.items()}
 
