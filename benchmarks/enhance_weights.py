@@ -17,6 +17,7 @@ import argparse
 import json
 import os
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -40,18 +41,20 @@ from pipeline.enhance.weights import shipped_bytes  # noqa: E402
 from pipeline.enhance.weights.loading import load_selector  # noqa: E402
 
 DEFAULT_MESHES = ("spot", "fandisk", "stanford-bunny")
-METHODS = ("presmoothing", "classical", "regressor", "ldm", "ldm_1_step")
+RUNS = {"classical": EnhanceConfig(method="classical"),
+        "regressor": EnhanceConfig(method="regressor"),
+        "ldm": EnhanceConfig(method="ldm"),
+        # Whether the diffusion steps do anything: the LDM at one step against its four.
+        "ldm_1_step": EnhanceConfig(method="ldm", steps=1)}
+METHODS = ("presmoothing", *RUNS)
 
 
 def figures(noisy, truth, weights: dict[str, bytes]) -> dict:
     selector = weights.get("selector") or shipped_bytes("selector")
     out = {"presmoothing": score(selector_presmoothed(noisy, load_selector(selector),
                                                       BoundedNoiseConfig()), truth, 0.0)}
-    for method in METHODS[1:4]:
-        out[method] = run_method(noisy, truth, EnhanceConfig(method=method, weights=weights))
-    # Whether the diffusion steps do anything: the LDM at one step against its default four.
-    out["ldm_1_step"] = run_method(noisy, truth, EnhanceConfig(method="ldm", steps=1,
-                                                               weights=weights))
+    for name, config in RUNS.items():
+        out[name] = run_method(noisy, truth, replace(config, weights=weights))
     return {m: {"c2m_rms_mm": round(r["c2m_rms_mm"], 4),
                 "normal_error_deg": round(r["normal_error_deg"], 2)} for m, r in out.items()}
 
