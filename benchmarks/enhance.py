@@ -200,10 +200,10 @@ def _recording_remesh_stats(stats: dict) -> None:
 def perf_child(args) -> None:
     """Runs one enhancement (`--method`, by default the product's) in this fresh process and
     prints seconds, the seconds of each stage (`STAGE_PROGRESS`), the light remesh's wait for
-    its kernel and peak RSS. A warm-up
-    call runs first: at 32² (`--warm-up small`: imports and first-call costs, not the
-    shapes of the timed call), or the timed call itself (`--warm-up full`: a worker's second
-    mesh, the accelerator's kernels for these shapes chosen already). With `--networks kept`
+    its kernel and peak RSS. A warm-up call runs first: at 32² (`--warm-up small`: imports
+    and first-call costs, not the shapes of the timed call), or the timed call itself
+    (`--warm-up full`: a worker's second mesh, the accelerator's kernels for these shapes
+    chosen already). With `--networks kept`
     the networks are loaded before the warm-up and both calls are given them
     (`networks.load_networks`), as a worker keeps them between jobs; `loaded`: each call
     loads its own. `--min-piece-faces` sets `remesh.MIN_PIECE_FACES` for both calls, to
