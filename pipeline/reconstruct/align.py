@@ -16,11 +16,17 @@ A correction is a claim about the sensor, so it is kept only when it is plausibl
   it, the disagreement is not the sensor's and the solve would bend the scene to fit noise
   or a poor calibration: the correction is refused with a warning and the camera kept as
   captured.
-* **Evidence.** Solved from one half of the overlaps (alternate 32-pixel image blocks), most
-  of a camera's correction must show in the other half's gaps (and the other way round). A
-  solve bends to the noise and mismatches of the samples it is given; a true offset or pose
-  error shows in the held-out ones as well. (An error smooth across the whole image shows
-  in both halves whatever its cause; the budget bounds those.)
+* **Evidence.** Solved from one half of the overlaps (alternate 5 cm cubes of the world),
+  most of the change in the gaps that the corrections predict must show in the other half's
+  gaps (and the other way round), pooled over each camera's overlaps. A solve bends to the
+  noise and mismatches of the samples it is given; a true offset or pose error shows in the
+  held-out ones as well. (An error smooth across the whole image shows in both halves
+  whatever its cause; the budget bounds those.)
+* **The simpler model first.** Pose touch-ups are estimated only when, solved from one half,
+  they explain the other half's gaps better than range offsets alone do, by more than twice
+  the gain's standard error. On the thin overlaps of a ring an offset and a small turn bend
+  a strip alike; the solve would share a pure offset between them and swing the camera's far
+  side, which no overlap sees.
 
 Refusals are decided one camera at a time, the worst first, and the rest solved again: a
 camera beyond the budget leaves the solve, one whose correction is not shown stays in as
@@ -29,7 +35,7 @@ captured.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -100,8 +106,8 @@ class AlignConfig:
     """A camera's correction is applied only when, solved from one half of the overlaps
     (alternate image blocks), at least this share of it shows in the other half's gaps
     (each half in turn, pooled; `heldout_confirmation`)."""
-    heldout_block_px: int = 32
-    """Side of the image blocks that alternate between the two halves, pixels."""
+    heldout_block_m: float = 0.05
+    """Side of the world cubes that alternate between the two halves, metres."""
 
     def __post_init__(self) -> None:
         if self.sample_step_px < 1 or self.rounds < 1 or self.iterations < 1:
@@ -112,8 +118,8 @@ class AlignConfig:
         if not (self.systematic_error_mm >= 0 and self.distance_error_fraction >= 0
                 and self.systematic_error_mm + self.distance_error_fraction > 0):
             raise ValueError("align: the sensor's error budget must be >= 0 and not zero")
-        if self.heldout_block_px < 1:
-            raise ValueError("align: heldout_block_px must be >= 1")
+        if not self.heldout_block_m > 0:
+            raise ValueError("align: heldout_block_m must be > 0")
 
 
 @dataclass(frozen=True)
@@ -157,6 +163,9 @@ class Corrections:
     """(C, 4, 4) corrected camera poses."""
     cameras: tuple[CameraCorrection, ...] = ()
     """Per camera, what was decided and why (empty when nothing was estimated)."""
+    poses_shown: bool | None = None
+    """Whether the held-out overlaps showed the pose touch-ups (`poses_shown`; None: not
+    tested, with ``poses`` or ``offsets`` off or nothing to align)."""
 
 
 def budget_m(range_m: FloatArray, config: AlignConfig) -> FloatArray:
@@ -178,30 +187,64 @@ def budget_shares(cams: list[SampledCamera], poses: FloatArray, x: FloatArray,
     return shares, largest
 
 
-def heldout_confirmation(matches: dict[tuple[int, int], Matches], camera_count: int,
-                         config: AlignConfig, fixed: frozenset[int]) -> FloatArray:
-    """(C,) per camera, how much of its own correction, solved from one half of the
-    overlaps, the other half shows: the least-squares scale of the change the correction
-    predicts on the held-out gaps (left after the partner cameras' corrections), both
-    halves pooled. 1: all of it, 0: none (NaN: no held-out samples that it moves)."""
+def _solved_halves(matches: dict[tuple[int, int], Matches], camera_count: int,
+                   config: AlignConfig, fixed: frozenset[int]) -> dict[bool, FloatArray]:
+    """Per half, the corrections solved from that half's samples alone."""
     solved = {}
     for half in (False, True):
         subset = {pair: m.select(m.half == half) for pair, m in matches.items()}
         solved[half] = solve({p: m for p, m in subset.items() if len(m.rhs)}, camera_count,
                              config, fixed)
+    return solved
+
+
+def heldout_confirmation(matches: dict[tuple[int, int], Matches], camera_count: int,
+                         config: AlignConfig, fixed: frozenset[int]) -> FloatArray:
+    """(C,) per camera, how much of the change in its overlaps' gaps that the corrections
+    solved from one half predict the other half shows: the least-squares scale of the
+    predicted change on the held-out gaps, over the camera's pairs and both halves. 1: all
+    of it, 0: none (NaN: no held-out samples that it moves).
+
+    The change is the pair's, both cameras' corrections together: the overlaps show how two
+    surfaces move against each other, and a camera's own share, set against the gap its
+    partner's correction leaves, would show whenever the two turned together."""
+    solved = _solved_halves(matches, camera_count, config, fixed)
     shown, predicted = np.zeros(camera_count), np.zeros(camera_count)
     for (i, j), m in matches.items():
         for half in (False, True):
             x = solved[not half]  # held out: solved without these samples
             rows = m.half == half
-            for own, row_own, other, row_other in ((i, m.row_i, j, m.row_j),
-                                                   (j, m.row_j, i, m.row_i)):
-                change = row_own[rows] @ x[own]
-                left = m.rhs[rows] - row_other[rows] @ x[other]
-                shown[own] += float(change @ left)
+            change = m.row_i[rows] @ x[i] + m.row_j[rows] @ x[j]
+            for own in (i, j):
+                shown[own] += float(change @ m.rhs[rows])
                 predicted[own] += float(change @ change)
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(predicted > 0, shown / predicted, np.nan)
+
+
+def _heldout_losses(matches: dict[tuple[int, int], Matches], camera_count: int,
+                    config: AlignConfig, fixed: frozenset[int]) -> FloatArray:
+    """(M,) the Huber loss of every sample under the corrections solved without its half."""
+    solved = _solved_halves(matches, camera_count, config, fixed)
+    losses = []
+    for (i, j), m in matches.items():
+        x = np.where(m.half[:, None], solved[False][i], solved[True][i])
+        y = np.where(m.half[:, None], solved[False][j], solved[True][j])
+        scale = np.abs(np.sum(m.row_i * x, axis=1) + np.sum(m.row_j * y, axis=1) - m.rhs)
+        scale /= config.huber_m
+        losses.append(np.where(scale <= 1.0, 0.5 * scale**2, scale - 0.5))
+    return np.concatenate(losses) if losses else np.zeros(0)
+
+
+def poses_shown(matches: dict[tuple[int, int], Matches], camera_count: int,
+                config: AlignConfig, fixed: frozenset[int]) -> bool:
+    """Whether pose touch-ups with the offsets explain held-out gaps better than the offsets
+    alone: the mean gain in held-out loss per sample exceeds twice its standard error."""
+    gain = (_heldout_losses(matches, camera_count, replace(config, poses=False), fixed)
+            - _heldout_losses(matches, camera_count, config, fixed))
+    if len(gain) < 2:
+        return False
+    return bool(gain.mean() > 2.0 * gain.std(ddof=1) / np.sqrt(len(gain)))
 
 
 def _all_matches(cams: list[SampledCamera], poses: FloatArray, offsets: FloatArray,
@@ -288,17 +331,22 @@ def estimate_corrections(views: list[DepthView], config: AlignConfig) -> Correct
     applied = np.zeros((count, 7))
     refused: dict[int, CameraCorrection] = {}
     counts = [0] * count
+    shown: bool | None = None
     for _ in range(config.rounds):
         matches = _all_matches(cams, poses, offsets, config)
         counts = _match_counts(matches, count)
         status: dict[int, CameraCorrection] = dict(refused)
-        x = _decide(matches, cams, poses, applied, config, status)
+        model = config
+        if config.offsets and config.poses:
+            shown = poses_shown(matches, count, config, frozenset(refused))
+            model = config if shown else replace(config, poses=False)
+        x = _decide(matches, cams, poses, applied, model, status)
         refused = {k: s for k, s in status.items() if s.status != APPLIED}
         poses, offsets = apply_correction(poses, offsets, x)
         applied += x
     decided = tuple(_with_matches(status.get(k, CameraCorrection(NO_OVERLAP)), counts[k])
                     for k in range(count))
-    return Corrections(offsets, poses, decided)
+    return Corrections(offsets, poses, decided, shown)
 
 
 def _with_matches(found: CameraCorrection, matches: int) -> CameraCorrection:
@@ -328,7 +376,8 @@ def _camera_figures(found: CameraCorrection) -> dict[str, object]:
 def align_report(camera_ids: list[str], poses_before: FloatArray, found: Corrections,
                  config: AlignConfig) -> dict[str, Any]:
     """The stage's figures: offsets and pose changes applied, each camera's decision with the
-    correction found, and a warning per correction refused as beyond the budget."""
+    correction found, whether the overlaps showed pose touch-ups, and a warning per
+    correction refused as beyond the budget."""
     warnings = [
         f"align: {cid}'s correction refused: it would move what the camera sees by up to "
         f"{c.max_shift_m * 1e3:.1f} mm, {c.budget_share:.1f}x the sensor's error budget "
@@ -342,6 +391,7 @@ def align_report(camera_ids: list[str], poses_before: FloatArray, found: Correct
                         in zip(camera_ids, poses_before, found.world_from_depth, strict=True)},
         "cameras": {cid: _camera_figures(c)
                     for cid, c in zip(camera_ids, found.cameras, strict=True)},
+        "poses_shown": found.poses_shown,
         "budget": {"systematic_error_mm": config.systematic_error_mm,
                    "distance_error_fraction": config.distance_error_fraction},
         "warnings": warnings,

@@ -41,8 +41,6 @@ class SampledCamera:
     """(N, 3) sampled points, camera frame, metres."""
     normals: FloatArray
     unit_rays: FloatArray
-    pixels: NDArray[np.int64]
-    """(N, 2) pixel (x, y) of each sample."""
     image_points: NDArray[np.float32]
     image_normals: NDArray[np.float32]
     image_ok: NDArray[np.bool_]
@@ -62,11 +60,9 @@ def sample_camera(view: DepthView, step: int, margin: int) -> SampledCamera:
                                                           np.uint8)) > 0 if margin else valid
     ok = ok & interior
     sub = ok[::step, ::step]
-    ys, xs = np.nonzero(sub)
     return SampledCamera(points=pts[::step, ::step][sub].astype(np.float64),
                          normals=normals[::step, ::step][sub].astype(np.float64),
                          unit_rays=unit[::step, ::step][sub].astype(np.float64),
-                         pixels=np.column_stack([xs, ys]).astype(np.int64) * step,
                          image_points=pts, image_normals=normals, image_ok=ok,
                          image_unit_rays=unit, view=view)
 
@@ -82,8 +78,8 @@ class Matches:
     rhs: FloatArray
     """(M,) right-hand sides (minus the current gap), metres."""
     half: NDArray[np.bool_]
-    """(M,) which half of the overlaps each sample belongs to (alternate image blocks of
-    camera j), for checks on held-out samples."""
+    """(M,) which half of the overlaps each sample belongs to (alternate cubes of the world),
+    for checks on held-out samples."""
 
     def select(self, keep: NDArray[np.bool_]) -> Matches:
         return Matches(self.row_i[keep], self.row_j[keep], self.rhs[keep], self.half[keep])
@@ -124,7 +120,9 @@ def pair_matches(cams: list[SampledCamera], poses: FloatArray, offsets: FloatArr
     n = n_i[use] + n_j[use]
     n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
     gap = np.sum((p_j - p_i) * n, axis=1)
-    blocks = cj.pixels[use] // config.heldout_block_px
+    # Halves by place, not by pixel: the samples of one spot by either camera of the pair then
+    # share a half, so no pixel's noise is in both.
+    blocks = np.floor(p_j / config.heldout_block_m).astype(np.int64)
 
     def row(p: FloatArray, centre: FloatArray, r: FloatArray) -> FloatArray:
         return np.column_stack([np.cross(p - centre, n), n, np.sum(r * n, axis=1)])
