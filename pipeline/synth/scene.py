@@ -177,15 +177,14 @@ def synthesize_stream(mesh: TriangleMesh, config: SynthConfig,
     """
     subject = place_subject(mesh, config)
     cameras = true_cameras(subject, config)
-    rngs = np.random.default_rng(config.seed).spawn(3)
-    pose_rng, bias_rng, noise_rng = rngs
+    pose_rng, _, noise_rng = np.random.default_rng(config.seed).spawn(3)
     written = []
     for cam in cameras:
         assert cam.world_from_depth is not None
         pose = perturb_pose(cam.world_from_depth, config.pose_error_rot_deg,
                             config.pose_error_trans_m, pose_rng)
         written.append(replace(cam, world_from_depth=pose))
-    biases = [draw_depth_bias_m(config.noise_model, bias_rng) for _ in cameras]
+    biases = camera_depth_biases_m(config, len(cameras))
     frames = tuple(FrameInfo(index=i, timestamp_us=i * FRAME_PERIOD_US)
                    for i in range(config.frame_count))
     meta = CaptureMeta(depth_scale=0.001, cameras=tuple(written), frames=frames)
@@ -198,6 +197,13 @@ def synthesize_stream(mesh: TriangleMesh, config: SynthConfig,
                 progress((index + 1) / len(cameras))
 
     return meta, views(), subject
+
+
+def camera_depth_biases_m(config: SynthConfig, camera_count: int) -> list[float]:
+    """Each camera's constant range offset, metres, as `synthesize` draws it for `config`
+    (what the `align` stage estimates)."""
+    bias_rng = np.random.default_rng(config.seed).spawn(3)[1]
+    return [draw_depth_bias_m(config.noise_model, bias_rng) for _ in range(camera_count)]
 
 
 def _camera_views(caster: MeshRaycaster, true_cam: CameraInfo, written_cam: CameraInfo,

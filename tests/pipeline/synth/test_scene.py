@@ -16,8 +16,10 @@ from pipeline.capture import View
 from pipeline.geometry.mesh import TriangleMesh
 from pipeline.synth.render import pixel_rays
 from pipeline.synth.rig import RigConfig, rig_cameras
+from pipeline.synth.noise import KinectNoiseConfig
 from pipeline.synth.scene import (
     SynthConfig,
+    camera_depth_biases_m,
     perturb_pose,
     place_subject,
     sample_mesh,
@@ -130,6 +132,22 @@ def test_noisy_depth_stays_near_the_ground_truth(subject: TriangleMesh) -> None:
         assert inner_distance.max() < 0.025
         # At the edges some pixels fly off the surface.
         assert distance.max() > 0.05
+
+
+def test_each_cameras_range_offset_is_the_one_drawn(subject: TriangleMesh) -> None:
+    """Noise with no random part: each camera's range is off by `camera_depth_biases_m`."""
+    model = KinectNoiseConfig(sigma_base_m=0.0, sigma_per_m=0.0, quantization_m=0.0,
+                              bias_std_m=0.004)
+    config = SynthConfig(rig=SMALL_RIG, seed=5, camera_count=3, noise_model=model)
+    views = synthesize(subject, config)[1]
+    ideal = synthesize(subject, replace(config, noise=False))[1]
+    biases = camera_depth_biases_m(config, 3)
+    assert len(set(biases)) == 3 and max(map(abs, biases)) > 0.001
+    for view, clean, bias in zip(views, ideal, biases, strict=True):
+        both = (view.depth_m > 0) & (clean.depth_m > 0) & ~_depth_edges(clean.depth_m)
+        rays = pixel_rays(view.camera.depth_intrinsics)[both]
+        range_change = (view.depth_m - clean.depth_m)[both] * np.linalg.norm(rays, axis=1)
+        np.testing.assert_allclose(range_change, bias, atol=1e-5)
 
 
 @settings(max_examples=20, deadline=None)
