@@ -14,9 +14,9 @@ from hypothesis import strategies as st
 
 from pipeline.capture import View
 from pipeline.geometry.mesh import TriangleMesh
+from pipeline.synth.noise import KinectNoiseConfig
 from pipeline.synth.render import pixel_rays
 from pipeline.synth.rig import RigConfig, rig_cameras
-from pipeline.synth.noise import KinectNoiseConfig
 from pipeline.synth.scene import (
     SynthConfig,
     camera_depth_biases_m,
