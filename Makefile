@@ -47,8 +47,10 @@ lint: setup
 	$(VENV)/bin/mypy
 	$(VENV)/bin/lint-imports
 
+# Two processes: the service tests spend most of their time waiting on the processes they
+# start, and each test starts its own services on free ports.
 unit: setup
-	$(VENV)/bin/pytest -q
+	$(VENV)/bin/pytest -q -n 2
 
 test: lint unit
 
