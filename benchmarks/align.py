@@ -84,7 +84,7 @@ def capture_row(mesh_file: Path, rig: Rig, offsets: bool, poses: bool, seed: int
                          camera_count=rig.cameras, with_color=False, noise_model=noise,
                          pose_error_rot_deg=POSE_ERROR_DEG if poses else 0.0,
                          pose_error_trans_m=POSE_ERROR_M if poses else 0.0)
-    meta, views, truth = synthesize(read_mesh(mesh_file), config)
+    _, views, truth = synthesize(read_mesh(mesh_file), config)
     true_poses = [np.asarray(c.world_from_depth) for c in true_cameras(truth, config)]
     true_offsets = camera_depth_biases_m(config, rig.cameras)
     depth_views = [_filtered(view) for view in views]
