@@ -15,7 +15,8 @@ Stages (in order):
   refine    the same keys, only the points of each voxel's chosen camera
   mesh      vertices_m (V, 3), faces (F, 3): Poisson-disk samples, screened Poisson
   remesh    vertices_m, faces: isotropic remeshing with angle criteria
-  fit       vertices_m moved along their normals onto the refined points' local planes
+  fit       vertices_m, faces: the vertices moved along their normals onto the refined
+            points' local planes, edges the points show bending split
   enhance   vertices_m moved to the enhanced depth views (only when ``enhance`` is set)
   colorize  vertices_m, faces, vertex_normals, vertex_colors (when the capture has colour)
 Each stage may also write ``stats_<stage>``: a 0-d string array holding JSON figures.
@@ -243,12 +244,14 @@ def _stage_fit(capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],
                config: ReconstructConfig, progress: Progress | None) -> Artifacts:
     points, normals = require_keys(inputs, ("points_world", "normals_world"), "fit")
     mesh = mesh_from_artifacts(inputs)
-    fitted = fit_to_cloud(mesh, np.asarray(points, dtype=np.float64), normals,
-                          config.surface_fit)
+    fitted, split = fit_to_cloud(mesh, np.asarray(points, dtype=np.float64), normals,
+                                 config.surface_fit)
     tick(progress, 1.0)
-    moved_m = np.linalg.norm(fitted.vertices_m - mesh.vertices_m, axis=1)
-    stats = {"moved_mean_m": float(moved_m.mean()) if len(moved_m) else 0.0}
-    return {"vertices_m": fitted.vertices_m} | stats_artifact("fit", stats)
+    moved_m = np.linalg.norm(fitted.vertices_m[:mesh.vertex_count] - mesh.vertices_m, axis=1)
+    stats = {"moved_mean_m": float(moved_m.mean()) if len(moved_m) else 0.0,
+             "split_edges": split, "triangles": fitted.face_count}
+    out: Artifacts = {"vertices_m": fitted.vertices_m, "faces": fitted.faces}
+    return out | stats_artifact("fit", stats)
 
 
 def _stage_colorize(capture: CaptureReader, inputs: Mapping[str, NDArray[Any]],
