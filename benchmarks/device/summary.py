@@ -1,7 +1,7 @@
-"""The device runs' JSON lines (`ab.sh`'s ab.jsonl) summed up: for each variant (code, mesh,
-warm-up, networks, kernel pieces, light remesh rounds, self-check, profiled) the runs'
-seconds, min / median / max, and the median of each stage and of the light remesh's wait for
-its kernel; prints JSON.
+"""The device runs' JSON lines (`ab.sh`'s ab.jsonl, `run.sh`'s perf.jsonl) summed up: for each
+variant (code, mesh, method, warm-up, networks, kernel pieces, light remesh rounds,
+self-check, profiled) the runs' seconds, min / median / max, and the median of each stage and
+of the light remesh's wait for its kernel; prints JSON.
 
     python3 benchmarks/device/summary.py ab.jsonl
 """
@@ -13,8 +13,8 @@ import statistics
 import sys
 from collections import defaultdict
 
-VARIANT_KEYS = ("code", "mesh", "warm_up", "networks", "kernel_pieces", "remesh_iterations",
-                "self_checked", "profiled")
+VARIANT_KEYS = ("code", "mesh", "method", "warm_up", "networks", "kernel_pieces",
+                "remesh_iterations", "self_checked", "profiled")
 
 
 def summary(lines: list[str]) -> list[dict]:
