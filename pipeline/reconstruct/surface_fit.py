@@ -120,29 +120,29 @@ def fit_to_cloud(mesh: TriangleMesh, points_world: FloatArray,
         return mesh, 0
     tree = cKDTree(points_world)
     normals = vertex_normals(mesh.vertices_m, mesh.faces).astype(np.float64)
-    moves_m, _ = _moves_m(mesh.vertices_m, normals, points_world, normals_world, tree, config)
-    vertices_m = mesh.vertices_m + moves_m
+    shift_m, _ = _shifts_m(mesh.vertices_m, normals, points_world, normals_world, tree, config)
+    vertices_m = mesh.vertices_m + shift_m[:, None] * normals
     edges, _ = edge_table(mesh.faces)
     edge_normals = vertex_normals(vertices_m, mesh.faces).astype(np.float64)[edges].sum(axis=1)
     edge_normals /= np.maximum(np.linalg.norm(edge_normals, axis=1, keepdims=True), 1e-12)
     midpoints_m = vertices_m[edges].mean(axis=1)
-    moves_m, error_m = _moves_m(midpoints_m, edge_normals, points_world, normals_world, tree,
-                                config)
-    off_m = np.linalg.norm(moves_m, axis=1)
-    split = off_m > np.maximum(config.split_tolerance_m, config.split_significance * error_m)
-    vertices_m, faces = split_edges(vertices_m, mesh.faces, split, midpoints_m + moves_m)
+    shift_m, error_m = _shifts_m(midpoints_m, edge_normals, points_world, normals_world, tree,
+                                 config)
+    split = np.abs(shift_m) > np.maximum(config.split_tolerance_m,
+                                         config.split_significance * error_m)
+    vertices_m, faces = split_edges(vertices_m, mesh.faces, split,
+                                    midpoints_m + shift_m[:, None] * edge_normals)
     return TriangleMesh(vertices_m=vertices_m, faces=faces), int(np.count_nonzero(split))
 
 
-def _moves_m(points_m: FloatArray, normals: FloatArray, points_world: FloatArray,
-             normals_world: NDArray[np.floating], tree: cKDTree, config: SurfaceFitConfig
-             ) -> tuple[FloatArray, FloatArray]:
-    """(N, 3) each of `points_m`'s move along its normal onto the cloud's local plane and
-    (N,) the move's standard error, metres (`normal_shifts_m`, in batches)."""
-    moves_m, error_m = np.zeros_like(points_m), np.zeros(len(points_m))
+def _shifts_m(points_m: FloatArray, normals: FloatArray, points_world: FloatArray,
+              normals_world: NDArray[np.floating], tree: cKDTree, config: SurfaceFitConfig
+              ) -> tuple[FloatArray, FloatArray]:
+    """`normal_shifts_m` in batches of `CHUNK_VERTICES`."""
+    shift_m, error_m = np.zeros(len(points_m)), np.zeros(len(points_m))
     for start in range(0, len(points_m), CHUNK_VERTICES):
         part = slice(start, start + CHUNK_VERTICES)
-        shift_m, error_m[part] = normal_shifts_m(points_m[part], normals[part], points_world,
-                                                 normals_world, tree, config)
-        moves_m[part] = shift_m[:, None] * normals[part]
-    return moves_m, error_m
+        shift_m[part], error_m[part] = normal_shifts_m(points_m[part], normals[part],
+                                                       points_world, normals_world, tree,
+                                                       config)
+    return shift_m, error_m
